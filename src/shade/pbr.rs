@@ -320,6 +320,112 @@ pub fn shade_surfels_backward(
     Ok(())
 }
 
+/// [`shade_surfels`] for the surfels listed in `ids` only (e.g. those a camera sees): output k
+/// belongs to surfel `ids[k]`.
+pub fn shade_subset(
+    inp: &PbrInputs,
+    env: &EnvMap,
+    ids: &[u32],
+    direct: &mut [[f32; 3]],
+    indirect: &mut [[f32; 3]],
+) -> Result<()> {
+    inp.validate()?;
+    if direct.len() != ids.len() || indirect.len() != ids.len() {
+        return Err(Error::invalid("PBR outputs", format!("need {} entries", ids.len())));
+    }
+    direct.par_iter_mut().zip(indirect.par_iter_mut()).zip(ids.par_iter()).with_min_len(64).for_each(|((d, ind), &i)| {
+        let (a, b) = shade_one(inp, env, i as usize);
+        *d = to32(a);
+        *ind = to32(b);
+    });
+    Ok(())
+}
+
+/// Per-surfel gradients of [`shade_subset`] (entry k belongs to `ids[k]`); no gradients to the
+/// cached visibility and indirect light (the cache is refreshed without gradients).
+#[derive(Clone, Debug, Default)]
+pub struct SubsetGrads {
+    pub v_albedo: Vec<[f32; 3]>,
+    pub v_roughness: Vec<f32>,
+    pub v_normal: Vec<[f32; 3]>,
+    pub v_view: Vec<[f32; 3]>,
+    /// Env texels (∂/∂ linear radiance); all zero when `detach.env`.
+    pub v_env: Vec<[f32; 3]>,
+}
+
+/// Backward of [`shade_subset`] for upstream gradients on L_direct and L_indirect (per entry).
+pub fn shade_subset_backward(
+    inp: &PbrInputs,
+    env: &EnvMap,
+    ids: &[u32],
+    v_direct: &[[f32; 3]],
+    v_indirect: &[[f32; 3]],
+    detach: Detach,
+    grads: &mut SubsetGrads,
+) -> Result<()> {
+    inp.validate()?;
+    let m = ids.len();
+    if v_direct.len() != m || v_indirect.len() != m {
+        return Err(Error::invalid("PBR upstream gradients", format!("need {m} entries")));
+    }
+    let s = inp.samples;
+    grads.v_albedo.resize(m, [0.0; 3]);
+    grads.v_roughness.resize(m, 0.0);
+    grads.v_normal.resize(m, [0.0; 3]);
+    grads.v_view.resize(m, [0.0; 3]);
+    let texels = env.texels.len();
+    const CHUNK: usize = 64;
+    let v_env = grads
+        .v_albedo
+        .par_chunks_mut(CHUNK)
+        .zip(grads.v_roughness.par_chunks_mut(CHUNK))
+        .zip(grads.v_normal.par_chunks_mut(CHUNK))
+        .zip(grads.v_view.par_chunks_mut(CHUNK))
+        .enumerate()
+        .fold(
+            || (if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] }, vec![0.0f32; s], vec![[0.0f32; 3]; s]),
+            |(mut acc, mut vvis, mut vind), (c, (((va, vr), vn), vv))| {
+                for j in 0..va.len() {
+                    let k = c * CHUNK + j;
+                    let (ga, gr, gn, gv) = backward_one(
+                        inp,
+                        env,
+                        ids[k] as usize,
+                        to64(v_direct[k]),
+                        to64(v_indirect[k]),
+                        detach,
+                        &mut vvis,
+                        &mut vind,
+                        &mut acc,
+                    );
+                    va[j] = to32(ga);
+                    vr[j] = gr as f32;
+                    vn[j] = to32(gn);
+                    vv[j] = to32(gv);
+                }
+                (acc, vvis, vind)
+            },
+        )
+        .map(|(acc, _, _)| acc)
+        .reduce(Vec::new, |mut a, b| {
+            if a.is_empty() {
+                return b;
+            }
+            for (x, y) in a.iter_mut().zip(&b) {
+                for ch in 0..3 {
+                    x[ch] += y[ch];
+                }
+            }
+            a
+        });
+    grads.v_env.clear();
+    grads.v_env.resize(texels, [0.0; 3]);
+    if !v_env.is_empty() {
+        grads.v_env.copy_from_slice(&v_env);
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -404,6 +510,43 @@ mod tests {
             *t = [rg.random_range(0.1..3.0), rg.random_range(0.1..3.0), rg.random_range(0.1..3.0)];
         }
         env
+    }
+
+    #[test]
+    fn subset_matches_the_full_pass() {
+        let case = random_case(9, 8, 4);
+        let env = random_env(8, 16, 5);
+        let inp = case.inputs();
+        let ids = [7u32, 2, 5];
+        let (mut d, mut ind) = (vec![[0.0; 3]; 9], vec![[0.0; 3]; 9]);
+        shade_surfels(&inp, &env, &mut d, &mut ind).unwrap();
+        let (mut ds, mut is) = (vec![[0.0; 3]; 3], vec![[0.0; 3]; 3]);
+        shade_subset(&inp, &env, &ids, &mut ds, &mut is).unwrap();
+        let mut v_dir = vec![[0.0f32; 3]; 9];
+        let mut v_ind = vec![[0.0f32; 3]; 9];
+        let (vs_dir, vs_ind) = (vec![[0.3f32, -0.2, 0.5]; 3], vec![[-0.1f32, 0.4, 0.2]; 3]);
+        for (k, &i) in ids.iter().enumerate() {
+            assert_eq!(ds[k], d[i as usize]);
+            assert_eq!(is[k], ind[i as usize]);
+            v_dir[i as usize] = vs_dir[k];
+            v_ind[i as usize] = vs_ind[k];
+        }
+        let mut full = PbrGrads::new(9, 8, env.texels.len());
+        shade_surfels_backward(&inp, &env, &v_dir, &v_ind, Detach::default(), &mut full).unwrap();
+        let mut sub = SubsetGrads::default();
+        shade_subset_backward(&inp, &env, &ids, &vs_dir, &vs_ind, Detach::default(), &mut sub).unwrap();
+        for (k, &i) in ids.iter().enumerate() {
+            assert_eq!(sub.v_albedo[k], full.v_albedo[i as usize]);
+            assert_eq!(sub.v_roughness[k], full.v_roughness[i as usize]);
+            assert_eq!(sub.v_normal[k], full.v_normal[i as usize]);
+            assert_eq!(sub.v_view[k], full.v_view[i as usize]);
+        }
+        for (a, b) in sub.v_env.iter().zip(&full.v_env) {
+            for ch in 0..3 {
+                assert!((a[ch] - b[ch]).abs() <= 1e-5 * (1.0 + b[ch].abs()), "{a:?} {b:?}");
+            }
+        }
+        assert!(sub.v_env.iter().any(|t| t[0] != 0.0));
     }
 
     #[test]

@@ -1,9 +1,11 @@
 //! Training: configuration, stages, density control, checkpoints.
 pub mod checkpoint;
+pub mod consistency;
 pub mod config;
 pub mod densify;
 pub mod init;
 pub mod interrupt;
+pub mod material;
 pub mod nvs;
 
 use crate::io::dataset::Dataset;

@@ -1,0 +1,194 @@
+//! The per-surfel incident-light cache of DESIGN §1: for every surfel, S directions on its
+//! normal's hemisphere (Fibonacci, a per-surfel random rotation, the 10° floor), the traced
+//! visibility V_s (the ray's final transmittance) and indirect radiance L_ind,s (the ray's
+//! composited SH radiance). It is refreshed by tracing without gradients; the consistency
+//! step overwrites the rows it traces with gradients.
+//!
+//! Colour space: SH radiance is trained on sRGB images (2DGS), so a traced ray's composited
+//! SH colour is sRGB-encoded; the cache stores it decoded to linear, as the rendering
+//! equation needs. (Decoding after compositing, not per hit: the difference is second order
+//! where a ray's hits differ in colour, and it keeps the tracer's payload unchanged.)
+//!
+//! Rays leave from μ + offset·n: 2D surfels of a flat patch are nearly coplanar, and rays
+//! from the exact centre at the 10° floor would hit the neighbours' disks at tiny t.
+
+use super::pbr::PbrInputs;
+use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
+use crate::surfels::Surfels;
+use crate::trace::{Ray, RayOutput, Tracer, trace};
+use rayon::prelude::*;
+
+/// Cached incident light: N surfels × S samples, surfel-major.
+#[derive(Clone, Debug, Default)]
+pub struct IncidentCache {
+    pub samples: usize,
+    /// Solid angle per sample (the Fibonacci estimator weight).
+    pub weight: f32,
+    pub dirs: Vec<[f32; 3]>,
+    pub visibility: Vec<f32>,
+    /// Linear radiance.
+    pub indirect: Vec<[f32; 3]>,
+}
+
+/// sRGB-encoded → linear for a traced colour (no clamp above 1: SH colours may exceed it).
+#[inline]
+pub fn decode(c: f32) -> f32 {
+    crate::io::image::srgb_to_linear(c.max(0.0))
+}
+
+/// d decode / dc.
+#[inline]
+pub fn decode_derivative(c: f32) -> f32 {
+    let c = c.max(0.0);
+    if c <= 0.040_45 { 1.0 / 12.92 } else { 2.4 / 1.055 * ((c + 0.055) / 1.055).powf(1.4) }
+}
+
+/// A deterministic rotation angle in [0, 2π) for surfel `i` at refresh `seed`.
+pub fn rotation_for(seed: u64, i: usize) -> f64 {
+    let mut x = seed ^ (i as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+    x ^= x >> 33;
+    (x >> 11) as f64 / (1u64 << 53) as f64 * std::f64::consts::TAU
+}
+
+/// Writes the S rays of surfel `i` (origin μ + offset·n, Fibonacci directions rotated by
+/// `rotation`) and returns the per-sample solid angle.
+pub fn surfel_rays(surfels: &Surfels, i: usize, offset: f32, rotation: f64, dirs: &mut [[f32; 3]], rays: &mut [Ray]) -> f32 {
+    let n = surfels.normal(i);
+    let m = surfels.means[i];
+    let w = fibonacci_hemisphere(n, rotation, MIN_ELEVATION_DEG, ElevationFloor::Spread, dirs);
+    let origin = [m[0] + offset * n[0], m[1] + offset * n[1], m[2] + offset * n[2]];
+    for (r, d) in rays.iter_mut().zip(dirs.iter()) {
+        *r = Ray { origin, dir: *d };
+    }
+    w as f32
+}
+
+impl IncidentCache {
+    pub fn len(&self) -> usize {
+        self.visibility.len().checked_div(self.samples).unwrap_or(0)
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Trace every surfel's S rays (no gradients) and replace the whole cache.
+    pub fn refresh(&mut self, tracer: &Tracer, surfels: &Surfels, samples: usize, offset: f32, seed: u64) {
+        let n = surfels.len();
+        let s = samples;
+        self.samples = s;
+        self.dirs.resize(n * s, [0.0; 3]);
+        self.visibility.resize(n * s, 0.0);
+        self.indirect.resize(n * s, [0.0; 3]);
+        if n == 0 || s == 0 {
+            return;
+        }
+        let mut rays = vec![Ray::default(); n * s];
+        let weights: Vec<f32> = self
+            .dirs
+            .par_chunks_mut(s)
+            .zip(rays.par_chunks_mut(s))
+            .enumerate()
+            .map(|(i, (d, r))| surfel_rays(surfels, i, offset, rotation_for(seed, i), d, r))
+            .collect();
+        self.weight = weights[0];
+        let mut out = vec![RayOutput::default(); n * s];
+        trace(tracer, surfels, &rays, None, &mut out, None);
+        for (k, o) in out.iter().enumerate() {
+            self.visibility[k] = o.transmittance;
+            self.indirect[k] = o.radiance.map(decode);
+        }
+    }
+
+    /// Overwrite surfel `i`'s row (S samples) with freshly traced values.
+    pub fn overwrite_row(&mut self, i: usize, dirs: &[[f32; 3]], visibility: &[f32], indirect: &[[f32; 3]]) {
+        let s = self.samples;
+        if dirs.len() != s || i >= self.len() {
+            return;
+        }
+        self.dirs[i * s..(i + 1) * s].copy_from_slice(dirs);
+        self.visibility[i * s..(i + 1) * s].copy_from_slice(visibility);
+        self.indirect[i * s..(i + 1) * s].copy_from_slice(indirect);
+    }
+
+    /// Rendering-equation inputs over the whole cache.
+    pub fn inputs<'a>(
+        &'a self,
+        albedo: &'a [[f32; 3]],
+        roughness: &'a [f32],
+        normal: &'a [[f32; 3]],
+        view: &'a [[f32; 3]],
+    ) -> PbrInputs<'a> {
+        PbrInputs {
+            albedo,
+            roughness,
+            normal,
+            view,
+            dirs: &self.dirs,
+            visibility: &self.visibility,
+            indirect: &self.indirect,
+            samples: self.samples,
+            weight: self.weight,
+            sample_weights: None,
+        }
+    }
+
+    /// Cosine-weighted mean visibility of surfel `i` (ambient occlusion, for pictures).
+    pub fn mean_visibility(&self, i: usize, normal: [f32; 3]) -> f32 {
+        let s = self.samples;
+        let (mut num, mut den) = (0.0f32, 0.0f32);
+        for k in i * s..(i + 1) * s {
+            let d = self.dirs[k];
+            let c = (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]).max(0.0);
+            num += c * self.visibility[k];
+            den += c;
+        }
+        if den > 0.0 { num / den } else { 1.0 }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::trace::TraceSettings;
+
+    #[test]
+    fn decode_derivative_matches_finite_differences() {
+        for c in [0.01f32, 0.2, 0.5, 0.9, 1.3] {
+            let h = 1e-3;
+            let fd = (decode(c + h) - decode(c - h)) / (2.0 * h);
+            assert!((fd - decode_derivative(c)).abs() < 2e-3 * (1.0 + fd.abs()), "{c}: {fd} vs {}", decode_derivative(c));
+        }
+    }
+
+    #[test]
+    fn a_lid_over_a_floor_blocks_the_upward_rays() {
+        // A floor surfel facing up and a large opaque lid facing down above it: every ray of
+        // the floor surfel that reaches the lid's disk is blocked; without the lid, all see sky.
+        let mut s = Surfels::random_in_box(2, [0.0; 3], [0.0; 3], 1);
+        s.means = vec![[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]];
+        s.quats = vec![[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]; // +z, and flipped to −z
+        s.log_scales = vec![[-5.0, -5.0], [3.0, 3.0]];
+        s.opacity_logits = vec![10.0, 10.0];
+        s.sh.iter_mut().for_each(|c| *c = [[0.0; 3]; crate::sh::SH_COEFFS]);
+        s.sh_degree = 0;
+        assert!(s.normal(1)[2] < -0.99);
+        let tracer = Tracer::build(&s, &TraceSettings::default());
+        let mut cache = IncidentCache::default();
+        cache.refresh(&tracer, &s, 16, 1e-3, 7);
+        for k in 0..16 {
+            assert!(cache.visibility[k] < 0.05, "floor sample {k}: V = {}", cache.visibility[k]);
+            // The lid's SH colour is 0.5 (sRGB) → linear ≈ 0.214, times its α ≈ 0.99.
+            let want = decode(0.5) * (1.0 - cache.visibility[k]);
+            assert!((cache.indirect[k][0] - want).abs() < 0.02, "{} vs {want}", cache.indirect[k][0]);
+        }
+        // The lid's own rays go down into empty space (the floor disk is tiny): all visible.
+        for k in 16..32 {
+            assert!(cache.visibility[k] > 0.99, "lid sample {k}: V = {}", cache.visibility[k]);
+        }
+        assert!((cache.weight - (2.0 * std::f32::consts::PI * (1.0 - 10f32.to_radians().sin()) / 16.0)).abs() < 1e-5);
+    }
+}

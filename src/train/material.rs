@@ -1,0 +1,212 @@
+//! Activated material and normal per surfel, and the chain from their gradients back to the
+//! surfel parameters (albedo a = 0.03 + 0.77·σ(θ_a), roughness r = σ(θ_r), normal = third
+//! column of R(q), view direction ω = (c − μ)/|c − μ|).
+
+use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat_backward, sigmoid};
+use rayon::prelude::*;
+
+/// Per-surfel activated values the shading reads.
+#[derive(Clone, Debug, Default)]
+pub struct MaterialView {
+    pub albedo: Vec<[f32; 3]>,
+    pub roughness: Vec<f32>,
+    pub normal: Vec<[f32; 3]>,
+}
+
+impl MaterialView {
+    pub fn update(&mut self, s: &Surfels) {
+        let n = s.len();
+        self.albedo.resize(n, [0.0; 3]);
+        self.roughness.resize(n, 0.0);
+        self.normal.resize(n, [0.0; 3]);
+        self.albedo.par_iter_mut().zip(self.roughness.par_iter_mut()).zip(self.normal.par_iter_mut()).enumerate().for_each(
+            |(i, ((a, r), nn))| {
+                *a = s.albedo(i);
+                *r = s.roughness(i);
+                *nn = s.normal(i);
+            },
+        );
+    }
+}
+
+/// Dense per-surfel gradients of the activated quantities.
+#[derive(Clone, Debug, Default)]
+pub struct MaterialGrads {
+    pub v_albedo: Vec<[f32; 3]>,
+    pub v_roughness: Vec<f32>,
+    pub v_normal: Vec<[f32; 3]>,
+    pub v_means: Vec<[f32; 3]>,
+}
+
+impl MaterialGrads {
+    pub fn reset(&mut self, n: usize) {
+        for v in [&mut self.v_albedo, &mut self.v_normal, &mut self.v_means] {
+            v.clear();
+            v.resize(n, [0.0; 3]);
+        }
+        self.v_roughness.clear();
+        self.v_roughness.resize(n, 0.0);
+    }
+
+    /// Add the chained gradients into the parameter gradients.
+    pub fn chain_into(&self, s: &Surfels, v: &mut SurfelGrads) {
+        v.albedo_logits
+            .par_iter_mut()
+            .zip(v.roughness_logits.par_iter_mut())
+            .zip(v.quats.par_iter_mut())
+            .zip(v.means.par_iter_mut())
+            .enumerate()
+            .for_each(|(i, (((va, vr), vq), vm))| {
+                for ch in 0..3 {
+                    let sg = sigmoid(s.albedo_logits[i][ch]);
+                    va[ch] += self.v_albedo[i][ch] * 0.77 * sg * (1.0 - sg);
+                    vm[ch] += self.v_means[i][ch];
+                }
+                let sr = sigmoid(s.roughness_logits[i]);
+                *vr += self.v_roughness[i] * sr * (1.0 - sr);
+                let vn = self.v_normal[i];
+                if vn != [0.0; 3] {
+                    let g = rotation_from_quat_backward(s.quats[i], [[0.0; 3], [0.0; 3], vn]);
+                    for k in 0..4 {
+                        vq[k] += g[k];
+                    }
+                }
+            });
+    }
+}
+
+/// Unit direction from `p` towards `eye`.
+#[inline]
+pub fn view_dir(p: [f32; 3], eye: [f32; 3]) -> [f32; 3] {
+    let d = [eye[0] - p[0], eye[1] - p[1], eye[2] - p[2]];
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
+    d.map(|x| x / l)
+}
+
+/// ∂L/∂p of [`view_dir`] for ∂L/∂ω = `v`: −(I − ωωᵀ) v / |eye − p|.
+#[inline]
+pub fn view_dir_backward(p: [f32; 3], eye: [f32; 3], v: [f32; 3]) -> [f32; 3] {
+    let d = [eye[0] - p[0], eye[1] - p[1], eye[2] - p[2]];
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
+    let w = d.map(|x| x / l);
+    let dot = v[0] * w[0] + v[1] * w[1] + v[2] * w[2];
+    [0, 1, 2].map(|k| -(v[k] - dot * w[k]) / l)
+}
+
+/// Flip surfel `i` so its normal points the other way: R' = R·Rx(π) = [t_u, −t_v, −n]
+/// (q' = q ⊗ (0, 1, 0, 0)).
+pub fn flip_surfel(s: &mut Surfels, i: usize) {
+    let [w, x, y, z] = s.quats[i];
+    s.quats[i] = [-x, w, z, -y];
+}
+
+/// Orient every surfel's normal towards the cameras that see its centre (majority vote over
+/// the cameras whose image contains the projected centre). The PBR stages cull back faces,
+/// so normals must point out of the object; the two-sided nvs stage leaves them arbitrary.
+/// Returns how many surfels were flipped.
+pub fn orient_towards_cameras(s: &mut Surfels, cameras: &[crate::camera::Camera]) -> usize {
+    let votes: Vec<i32> = (0..s.len())
+        .into_par_iter()
+        .map(|i| {
+            let n = s.normal(i);
+            let m = s.means[i];
+            let mut vote = 0;
+            for cam in cameras {
+                let p = glam::Vec3::from(m);
+                if let Some((x, y)) = cam.project(p)
+                    && x >= 0.0
+                    && y >= 0.0
+                    && x < cam.width as f32
+                    && y < cam.height as f32
+                {
+                    let c = cam.position();
+                    let d = [c.x - m[0], c.y - m[1], c.z - m[2]];
+                    vote += if d[0] * n[0] + d[1] * n[1] + d[2] * n[2] >= 0.0 { 1 } else { -1 };
+                }
+            }
+            vote
+        })
+        .collect();
+    let mut flipped = 0;
+    for (i, v) in votes.into_iter().enumerate() {
+        if v < 0 {
+            flip_surfel(s, i);
+            flipped += 1;
+        }
+    }
+    flipped
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flip_negates_the_normal_and_keeps_the_plane() {
+        let mut s = Surfels::random_in_box(5, [0.0; 3], [1.0; 3], 3);
+        for i in 0..5 {
+            let r = s.rotation(i);
+            flip_surfel(&mut s, i);
+            let r2 = s.rotation(i);
+            for k in 0..3 {
+                assert!((r2[0][k] - r[0][k]).abs() < 1e-5);
+                assert!((r2[1][k] + r[1][k]).abs() < 1e-5);
+                assert!((r2[2][k] + r[2][k]).abs() < 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn view_dir_backward_matches_finite_differences() {
+        let (p, eye, v) = ([0.1f32, -0.3, 0.2], [1.0f32, 2.0, -1.5], [0.3f32, -0.7, 0.4]);
+        let g = view_dir_backward(p, eye, v);
+        for k in 0..3 {
+            let h = 1e-3;
+            let (mut a, mut b) = (p, p);
+            a[k] += h;
+            b[k] -= h;
+            let f = |q: [f32; 3]| {
+                let w = view_dir(q, eye);
+                (0..3).map(|j| w[j] * v[j]).sum::<f32>()
+            };
+            let fd = (f(a) - f(b)) / (2.0 * h);
+            assert!((fd - g[k]).abs() < 1e-3, "{k}: {fd} vs {}", g[k]);
+        }
+    }
+
+    #[test]
+    fn chain_matches_finite_differences_for_albedo_roughness_and_normal() {
+        let s = Surfels::random_in_box(3, [0.0; 3], [1.0; 3], 9);
+        let mut g = MaterialGrads::default();
+        g.reset(3);
+        g.v_albedo[1] = [0.5, -0.2, 0.3];
+        g.v_roughness[1] = -0.7;
+        g.v_normal[1] = [0.2, 0.9, -0.4];
+        let mut v = s.zeros_like();
+        g.chain_into(&s, &mut v);
+        let loss = |t: &Surfels| {
+            let (a, r, n) = (t.albedo(1), t.roughness(1), t.normal(1));
+            (0..3).map(|k| a[k] * g.v_albedo[1][k] + n[k] * g.v_normal[1][k]).sum::<f32>() + r * g.v_roughness[1]
+        };
+        let h = 1e-3;
+        for k in 0..3 {
+            let (mut a, mut b) = (s.clone(), s.clone());
+            a.albedo_logits[1][k] += h;
+            b.albedo_logits[1][k] -= h;
+            let fd = (loss(&a) - loss(&b)) / (2.0 * h);
+            assert!((fd - v.albedo_logits[1][k]).abs() < 1e-3);
+        }
+        let (mut a, mut b) = (s.clone(), s.clone());
+        a.roughness_logits[1] += h;
+        b.roughness_logits[1] -= h;
+        assert!(((loss(&a) - loss(&b)) / (2.0 * h) - v.roughness_logits[1]).abs() < 1e-3);
+        for k in 0..4 {
+            let (mut a, mut b) = (s.clone(), s.clone());
+            a.quats[1][k] += h;
+            b.quats[1][k] -= h;
+            let fd = (loss(&a) - loss(&b)) / (2.0 * h);
+            assert!((fd - v.quats[1][k]).abs() < 2e-3, "q{k}: {fd} vs {}", v.quats[1][k]);
+        }
+        assert_eq!(v.albedo_logits[0], [0.0; 3]);
+    }
+}

@@ -100,46 +100,160 @@ pub fn flip_surfel(s: &mut Surfels, i: usize) {
     s.quats[i] = [-x, w, z, -y];
 }
 
-/// Orient every surfel's normal towards the cameras that see its centre (majority vote over
-/// the cameras whose image contains the projected centre). The PBR stages cull back faces,
-/// so normals must point out of the object; the two-sided nvs stage leaves them arbitrary.
-/// Returns how many surfels were flipped.
-pub fn orient_towards_cameras(s: &mut Surfels, cameras: &[crate::camera::Camera]) -> usize {
-    let votes: Vec<i32> = (0..s.len())
-        .into_par_iter()
-        .map(|i| {
-            let n = s.normal(i);
-            let m = s.means[i];
-            let mut vote = 0;
-            for cam in cameras {
+/// What [`orient_surfels`] did.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct Orientation {
+    pub flipped: usize,
+    /// Surfels seen from both sides that got a flipped twin.
+    pub doubled: usize,
+    /// Surfels no camera sees (oriented away from the scene centre).
+    pub unseen: usize,
+}
+
+/// Orient surfel normals for the PBR stages, which cull back faces and need normals pointing
+/// out of the surface. The nvs stage is two-sided, so its normals are arbitrary and a thin
+/// wall may be one layer of surfels seen from both sides. For every training camera the
+/// two-sided depth is rendered; a surfel votes for the side of each camera that sees it
+/// (centre in the image, its depth within `tolerance` of the rendered depth). Surfels seen
+/// from both sides (at least 2 cameras and 20% of the votes each) get a flipped twin at the
+/// same place, so every view still sees one of the two; unseen surfels face away from the
+/// centroid of the scene.
+pub fn orient_surfels(s: &mut Surfels, cameras: &[crate::camera::Camera], window: usize, tolerance: f32) -> Orientation {
+    use crate::raster::{self, Outputs, RasterSettings};
+    let n = s.len();
+    let mut pos = vec![0u32; n];
+    let mut neg = vec![0u32; n];
+    let settings = RasterSettings {
+        window,
+        two_sided: true,
+        outputs: Outputs { colour: false, depth: true, median_depth: false, normal: false, distortion: false },
+        ..RasterSettings::default()
+    };
+    for cam in cameras {
+        let (out, _) = raster::render(s, cam, &settings, None);
+        let c = cam.position();
+        let votes: Vec<i8> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let m = s.means[i];
                 let p = glam::Vec3::from(m);
-                if let Some((x, y)) = cam.project(p)
-                    && x >= 0.0
-                    && y >= 0.0
-                    && x < cam.width as f32
-                    && y < cam.height as f32
-                {
-                    let c = cam.position();
-                    let d = [c.x - m[0], c.y - m[1], c.z - m[2]];
-                    vote += if d[0] * n[0] + d[1] * n[1] + d[2] * n[2] >= 0.0 { 1 } else { -1 };
+                let z = cam.world_to_camera(p).z;
+                let Some((x, y)) = cam.project(p) else { return 0 };
+                if z <= 0.0 || x < 0.0 || y < 0.0 || x >= cam.width as f32 || y >= cam.height as f32 {
+                    return 0;
                 }
+                let k = y as usize * cam.width as usize + x as usize;
+                if out.alpha[k] < 0.5 || (out.depth[k] - z).abs() > tolerance {
+                    return 0;
+                }
+                let nn = s.normal(i);
+                let d = [c.x - m[0], c.y - m[1], c.z - m[2]];
+                if d[0] * nn[0] + d[1] * nn[1] + d[2] * nn[2] >= 0.0 { 1 } else { -1 }
+            })
+            .collect();
+        for (i, v) in votes.into_iter().enumerate() {
+            match v {
+                1 => pos[i] += 1,
+                -1 => neg[i] += 1,
+                _ => {}
             }
-            vote
-        })
-        .collect();
-    let mut flipped = 0;
-    for (i, v) in votes.into_iter().enumerate() {
-        if v < 0 {
-            flip_surfel(s, i);
-            flipped += 1;
         }
     }
-    flipped
+    let mut centroid = [0.0f64; 3];
+    for m in &s.means {
+        for k in 0..3 {
+            centroid[k] += m[k] as f64 / n.max(1) as f64;
+        }
+    }
+    let mut o = Orientation::default();
+    let mut twins = Vec::new();
+    for i in 0..n {
+        let (p, q) = (pos[i], neg[i]);
+        let total = p + q;
+        if total == 0 {
+            let nn = s.normal(i);
+            let m = s.means[i];
+            let out: f64 = (0..3).map(|k| (m[k] as f64 - centroid[k]) * nn[k] as f64).sum();
+            if out < 0.0 {
+                flip_surfel(s, i);
+                o.flipped += 1;
+            }
+            o.unseen += 1;
+            continue;
+        }
+        if p.min(q) >= 2 && p.min(q) as f32 >= 0.2 * total as f32 {
+            twins.push(i);
+        } else if q > p {
+            flip_surfel(s, i);
+            o.flipped += 1;
+        }
+    }
+    o.doubled = twins.len();
+    s.append_copies(&twins);
+    for k in 0..twins.len() {
+        flip_surfel(s, n + k);
+    }
+    o
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn orientation_faces_the_cameras_and_doubles_two_sided_walls() {
+        use crate::camera::Camera;
+        use glam::Vec3;
+        // A wall in the plane y = 0 made of a grid of surfels with random-sign normals, seen by
+        // cameras on both sides; and a floor patch (z = −1) seen only from above.
+        let mut s = Surfels::random_in_box(1, [0.0; 3], [0.0; 3], 1);
+        s.means.clear();
+        s.log_scales.clear();
+        s.quats.clear();
+        s.opacity_logits.clear();
+        s.sh.clear();
+        s.albedo_logits.clear();
+        s.roughness_logits.clear();
+        let wall_q = [std::f32::consts::FRAC_1_SQRT_2, -std::f32::consts::FRAC_1_SQRT_2, 0.0, 0.0]; // n = +y
+        for a in 0..10 {
+            for b in 0..10 {
+                let q = if (a + b) % 2 == 0 { wall_q } else { [-wall_q[1], wall_q[0], 0.0, 0.0] };
+                s.push([-0.45 + 0.1 * a as f32, 0.0, -0.45 + 0.1 * b as f32], [0.08, 0.08], q, 0.95, [0.5; 3], [0.5; 3], 0.5);
+            }
+        }
+        let floor_down = [0.0, 1.0, 0.0, 0.0]; // n = −z
+        for a in 0..10 {
+            for b in 0..10 {
+                s.push([-0.45 + 0.1 * a as f32, 1.0 + 0.1 * b as f32, -1.0], [0.08, 0.08], floor_down, 0.95, [0.5; 3], [0.5; 3], 0.5);
+            }
+        }
+        assert!(s.normal(0)[1] > 0.99 && s.normal(1)[1] < -0.99 && s.normal(100)[2] < -0.99);
+        let cams: Vec<Camera> = [
+            Vec3::new(0.3, 3.0, 0.5),
+            Vec3::new(-0.3, 3.0, 0.2),
+            Vec3::new(0.2, -3.0, 0.4),
+            Vec3::new(-0.2, -3.0, -0.3),
+            Vec3::new(0.0, 1.5, 3.0),
+            Vec3::new(0.5, 1.5, 3.0),
+        ]
+        .iter()
+        .map(|&p| {
+            let target = if p.z > 2.0 { Vec3::new(0.0, 1.5, -1.0) } else { Vec3::ZERO };
+            Camera::look_at("c", p, target, 64, 64, 0.9)
+        })
+        .collect();
+        let o = orient_surfels(&mut s, &cams, 8, 0.05);
+        assert_eq!(s.len(), 200 + o.doubled);
+        assert!(o.doubled >= 50, "{o:?}");
+        for i in 100..200 {
+            assert!(s.normal(i)[2] > 0.99, "floor surfel {i} must face up: {:?}", s.normal(i));
+        }
+        // Every doubled wall surfel has a twin facing the other way.
+        for k in 0..o.doubled {
+            let t = 200 + k;
+            assert!(s.normal(t)[1].abs() > 0.99);
+        }
+    }
 
     #[test]
     fn flip_negates_the_normal_and_keeps_the_plane() {

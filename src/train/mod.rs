@@ -5,6 +5,7 @@ pub mod config;
 pub mod densify;
 pub mod init;
 pub mod interrupt;
+pub mod inverse;
 pub mod material;
 pub mod nvs;
 
@@ -14,39 +15,48 @@ use config::{Stage, TrainConfig};
 /// `radiogs train`: validate, write `RUN/config.toml`, run the requested stage(s).
 pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     cfg.validate()?;
-    if cfg.stage != Stage::Nvs {
-        return Err(crate::NotBuilt("radiogs train --stage init|inverse|all is not built yet (issue 7)").into());
+    if cfg.stage == Stage::Init {
+        return Err(crate::NotBuilt(
+            "radiogs train --stage init (split-sum stage 1) is not built yet; --stage all runs nvs then inverse",
+        )
+        .into());
     }
     let dataset = Dataset::open(&cfg.data)?;
     std::fs::create_dir_all(&cfg.out).map_err(|e| crate::Error::io(&cfg.out, e))?;
     cfg.save(&cfg.out.join("config.toml"))?;
     eprintln!("{}", dataset.summary());
-    match cfg.stage {
-        Stage::Nvs => {
-            let summary = nvs::run(cfg, &dataset, true)?;
-            let text = serde_json::to_string_pretty(&summary)?;
-            crate::io::atomic::write_atomic(&cfg.out.join("train_summary.json"), text.as_bytes())?;
-            if summary.interrupted {
-                eprintln!(
-                    "interrupted at iteration {}: checkpoint written to {}; continue with --resume",
-                    summary.iterations,
-                    nvs::checkpoint_path(&cfg.out).display()
-                );
-            } else {
-                eprintln!(
-                    "nvs: {} iterations in {:.1} s ({:.1} it/s), {} surfels, last PSNR {:.2} dB → {}",
-                    summary.iterations,
-                    summary.seconds,
-                    summary.iterations as f64 / summary.seconds.max(1e-9),
-                    summary.surfels,
-                    summary.last_psnr,
-                    cfg.out.join("point_cloud.ply").display()
-                );
-            }
-            Ok(())
+    let stages: &[Stage] = match cfg.stage {
+        Stage::Nvs => &[Stage::Nvs],
+        Stage::Inverse => &[Stage::Inverse],
+        _ => &[Stage::Nvs, Stage::Inverse],
+    };
+    let mut summaries = serde_json::Map::new();
+    for &stage in stages {
+        let (name, summary) = match stage {
+            Stage::Nvs => ("nvs", nvs::run(cfg, &dataset, true)?),
+            _ => ("inverse", inverse::run(cfg, &dataset, true)?),
+        };
+        summaries.insert(name.to_string(), serde_json::to_value(&summary)?);
+        let text = serde_json::to_string_pretty(&summaries)?;
+        crate::io::atomic::write_atomic(&cfg.out.join("train_summary.json"), text.as_bytes())?;
+        if summary.interrupted {
+            let ckpt = if stage == Stage::Nvs { nvs::checkpoint_path(&cfg.out) } else { inverse::checkpoint_path(&cfg.out) };
+            eprintln!(
+                "interrupted in {name} at iteration {}: checkpoint written to {}; continue with --resume",
+                summary.iterations,
+                ckpt.display()
+            );
+            return Ok(());
         }
-        Stage::Init | Stage::Inverse | Stage::All => {
-            Err(crate::NotBuilt("radiogs train --stage init|inverse|all is not built yet (issue 7)").into())
-        }
+        eprintln!(
+            "{name}: {} iterations in {:.1} s ({:.2} it/s), {} surfels, last PSNR {:.2} dB → {}",
+            summary.iterations,
+            summary.seconds,
+            summary.iterations as f64 / summary.seconds.max(1e-9),
+            summary.surfels,
+            summary.last_psnr,
+            cfg.out.display()
+        );
     }
+    Ok(())
 }

@@ -183,7 +183,7 @@ fn rgba_views(images: &TrainImages) -> Vec<crate::io::image::Image> {
 }
 
 /// The view trained at an iteration: a seeded permutation of the views per epoch.
-fn view_for_iteration(seed: u64, iteration: u32, views: usize) -> usize {
+pub(crate) fn view_for_iteration(seed: u64, iteration: u32, views: usize) -> usize {
     let epoch = (iteration as usize - 1) / views;
     let slot = (iteration as usize - 1) % views;
     let mut order: Vec<usize> = (0..views).collect();
@@ -195,7 +195,7 @@ fn view_for_iteration(seed: u64, iteration: u32, views: usize) -> usize {
     order[slot]
 }
 
-fn iteration_rng(seed: u64, iteration: u32, stream: u64) -> rand_pcg::Pcg64 {
+pub(crate) fn iteration_rng(seed: u64, iteration: u32, stream: u64) -> rand_pcg::Pcg64 {
     rand_pcg::Pcg64::seed_from_u64(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ ((iteration as u64) << 8) ^ stream)
 }
 
@@ -326,21 +326,21 @@ fn iterate(
     losses
 }
 
-fn progress_bar(cfg: &TrainConfig, start: u32) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(cfg.iters as u64);
+pub(crate) fn progress_bar(prefix: &'static str, total: u32, start: u32) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(total as u64);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
             "{prefix} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}",
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    bar.set_prefix("nvs");
+    bar.set_prefix(prefix);
     bar.set_position(start as u64);
     bar
 }
 
 /// Keep the metrics lines up to `iteration` (after a resume) and return an appender.
-fn open_metrics(path: &Path, keep_until: u32) -> anyhow::Result<std::fs::File> {
+pub(crate) fn open_metrics(path: &Path, keep_until: u32) -> anyhow::Result<std::fs::File> {
     let kept: Vec<String> = std::fs::read_to_string(path)
         .unwrap_or_default()
         .lines()
@@ -399,7 +399,7 @@ pub fn run_until(
         percent_dense: cfg.percent_dense,
         ..DensifyConfig::default()
     };
-    let bar = progress_bar(cfg, state.iteration);
+    let bar = progress_bar("nvs", cfg.iters, state.iteration);
     if !show_progress {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }

@@ -1,0 +1,712 @@
+//! The `inverse` stage (RadioGS stage 2, DESIGN §1): recover albedo, roughness and the
+//! environment light so that the surfels' radiance agrees with the rendering equation.
+//!
+//! Starts from the run's nvs checkpoint (geometry + SH): normals are oriented towards the
+//! cameras (back faces are culled from here on), materials and light are fresh (albedo 0.3,
+//! roughness 0.6, env 1.5). Per iteration, on one training view:
+//! 1. per-surfel Monte Carlo PBR for the view direction, from the cached incident light
+//!    (directions, visibility, indirect) and the current env (with gradients), for the surfels
+//!    facing the camera; rasterised as feature channels [L_pbr, albedo, roughness] beside
+//!    the SH colour;
+//! 2. losses: PBR image (linear → sRGB, L1 + 0.2·D-SSIM), SH image (0.8·L1 + 0.2·D-SSIM),
+//!    mask, normal consistency, edge-aware smoothness of albedo/roughness/normal;
+//! 3. radiometric consistency on B random surfels × R traced rays with gradients through the
+//!    tracer (consistency.rs); the traced rows overwrite the cache when R = S;
+//! 4. env priors (white light, TV), Adam on surfels (geometry lr × 0.01) and env (log radiance);
+//! 5. the tracer is refitted every step; the cache is refreshed every `cache_every` steps.
+//!
+//! No densification. Writes `checkpoint_inverse.bin`, `point_cloud.ply` (with material
+//! fields) and `envmap.exr`.
+
+use super::consistency::{RcLosses, RcScratch, RcSettings, encode, encode_derivative, radiometric_consistency};
+use super::material::{MaterialGrads, MaterialView, orient_surfels, view_dir, view_dir_backward};
+use super::nvs::{self, StageSummary, TimeSplit, TrainImages, iteration_rng, open_metrics, progress_bar, view_for_iteration};
+use crate::camera::Camera;
+use crate::envmap::EnvMap;
+use crate::error::Error;
+use crate::io::dataset::{Dataset, Split};
+use crate::io::ply::write_ply;
+use crate::loss::{self, EdgeAwareSmoothness, NormalConsistency, Ssim};
+use crate::optim::{Adam, LearningRates, SurfelAdam};
+use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
+use crate::shade::incident::IncidentCache;
+use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
+use crate::surfels::{Surfels, albedo_to_logit, logit};
+use crate::trace::{TraceSettings, Tracer};
+use crate::train::checkpoint::Checkpoint;
+use crate::train::config::{Background, TrainConfig};
+use crate::train::interrupt;
+use anyhow::Context;
+use rand::RngExt;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Feature channels rasterised in training: linear L_pbr (3), albedo (3), roughness (1).
+pub const TRAIN_CHANNELS: usize = 7;
+/// Feature channels for pictures and evaluation: the training ones, then linear L_indirect
+/// (3) and cosine-weighted visibility (1).
+pub const VIEW_CHANNELS: usize = 11;
+
+pub fn checkpoint_path(run: &Path) -> PathBuf {
+    run.join("checkpoint_inverse.bin")
+}
+
+/// The tracer settings of the PBR stages (RadioGS: stop at T < 0.03, cull back faces).
+pub fn trace_settings() -> TraceSettings {
+    TraceSettings::default()
+}
+
+/// Everything an inverse run holds.
+pub struct InverseState {
+    pub surfels: Surfels,
+    pub adam: SurfelAdam,
+    /// Log radiance of the env texels, H × 2H × 3.
+    pub env_log: Vec<f32>,
+    pub env_adam: Adam,
+    pub env_height: usize,
+    pub cache: IncidentCache,
+    pub iteration: u32,
+    pub extent: f32,
+}
+
+/// The nvs stage's initial position rate (scaled by the scene extent) × the geometry scale.
+fn position_lr(cfg: &TrainConfig, extent: f32) -> f32 {
+    cfg.lr_position_init * extent * cfg.geometry_lr_scale
+}
+
+fn learning_rates(cfg: &TrainConfig) -> LearningRates {
+    let g = cfg.geometry_lr_scale;
+    LearningRates {
+        means: 0.0, // set from the extent by the caller (position_lr)
+        log_scales: cfg.lr_scale * g,
+        quats: cfg.lr_rotation * g,
+        opacity_logits: cfg.lr_opacity * g,
+        sh_dc: cfg.lr_sh,
+        sh_rest: cfg.lr_sh / 20.0,
+        albedo_logits: cfg.lr_albedo,
+        roughness_logits: cfg.lr_roughness,
+    }
+}
+
+impl InverseState {
+    pub fn env(&self) -> EnvMap {
+        let h = self.env_height;
+        EnvMap {
+            width: 2 * h,
+            height: h,
+            texels: self.env_log.chunks_exact(3).map(|c| [c[0].exp(), c[1].exp(), c[2].exp()]).collect(),
+        }
+    }
+
+    /// Fresh materials and light on the nvs result.
+    pub fn from_nvs(cfg: &TrainConfig, mut surfels: Surfels, cameras: &[Camera], extent: f32) -> InverseState {
+        let n0 = surfels.len();
+        let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
+        tracing::info!(
+            "inverse: oriented {n0} surfels towards the cameras that see them: {} flipped, {} seen from both sides \
+             doubled, {} unseen",
+            o.flipped,
+            o.doubled,
+            o.unseen
+        );
+        surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
+        surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
+        let h = cfg.env_height;
+        let env_log = vec![cfg.env_init.ln(); h * 2 * h * 3];
+        let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
+        adam.lr.means = position_lr(cfg, extent);
+        InverseState {
+            env_adam: Adam::new(env_log.len(), cfg.lr_env),
+            env_log,
+            env_height: h,
+            adam,
+            surfels,
+            cache: IncidentCache::default(),
+            iteration: 0,
+            extent,
+        }
+    }
+
+    pub fn to_checkpoint(&self, cfg: &TrainConfig) -> Checkpoint {
+        let mut c = Checkpoint {
+            meta: serde_json::json!({
+                "stage": "inverse",
+                "iteration": self.iteration,
+                "extent": self.extent,
+                "adam_step": self.adam.step,
+                "env_adam_step": self.env_adam.step,
+                "env_height": self.env_height,
+                "cache_samples": self.cache.samples,
+                "cache_weight": self.cache.weight,
+                "seed": cfg.seed,
+                "iters": cfg.inverse_iters,
+            }),
+            ..Default::default()
+        };
+        c.put_surfels("params", &self.surfels);
+        c.put_surfels("adam_m", &self.adam.m);
+        c.put_surfels("adam_v", &self.adam.v);
+        c.put("env.log", self.env_log.clone());
+        c.put("env.adam_m", self.env_adam.m.clone());
+        c.put("env.adam_v", self.env_adam.v.clone());
+        c.put("cache.dirs", self.cache.dirs.iter().flatten().copied().collect());
+        c.put("cache.visibility", self.cache.visibility.clone());
+        c.put("cache.indirect", self.cache.indirect.iter().flatten().copied().collect());
+        c
+    }
+
+    pub fn from_checkpoint(path: &Path, c: &Checkpoint, cfg: &TrainConfig) -> crate::Result<InverseState> {
+        let meta_u64 = |key: &str| {
+            c.meta.get(key).and_then(|v| v.as_u64()).ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
+        };
+        let surfels = c.get_surfels(path, "params")?;
+        let extent = c.meta.get("extent").and_then(|v| v.as_f64()).unwrap_or(1.0) as f32;
+        let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
+        adam.lr.means = position_lr(cfg, extent);
+        adam.m = c.get_surfels(path, "adam_m")?;
+        adam.v = c.get_surfels(path, "adam_v")?;
+        adam.step = meta_u64("adam_step")?;
+        let h = meta_u64("env_height")? as usize;
+        let env_log = c.require(path, "env.log")?.to_vec();
+        if env_log.len() != h * 2 * h * 3 {
+            return Err(Error::format(path, "env.log", "size does not match env_height"));
+        }
+        let mut env_adam = Adam::new(env_log.len(), cfg.lr_env);
+        env_adam.m = c.require(path, "env.adam_m")?.to_vec();
+        env_adam.v = c.require(path, "env.adam_v")?.to_vec();
+        env_adam.step = meta_u64("env_adam_step")?;
+        let samples = meta_u64("cache_samples")? as usize;
+        let triples = |name: &str| -> crate::Result<Vec<[f32; 3]>> {
+            Ok(c.require(path, name)?.chunks_exact(3).map(|x| [x[0], x[1], x[2]]).collect())
+        };
+        let cache = IncidentCache {
+            samples,
+            weight: c.meta.get("cache_weight").and_then(|v| v.as_f64()).unwrap_or(0.0) as f32,
+            dirs: triples("cache.dirs")?,
+            visibility: c.require(path, "cache.visibility")?.to_vec(),
+            indirect: triples("cache.indirect")?,
+        };
+        if cache.len() != surfels.len() && !cache.is_empty() {
+            return Err(Error::format(path, "cache", "row count differs from the surfel count"));
+        }
+        Ok(InverseState {
+            surfels,
+            adam,
+            env_log,
+            env_adam,
+            env_height: h,
+            cache,
+            iteration: meta_u64("iteration")? as u32,
+            extent,
+        })
+    }
+}
+
+/// Per-surfel features for one camera: which surfels are shaded (facing the camera, centre
+/// in front of it), their view directions, and the feature rows (N × channels; surfels not
+/// shaded get zero PBR but keep their material channels).
+#[derive(Default)]
+pub struct SurfelShading {
+    pub active: Vec<u32>,
+    pub view: Vec<[f32; 3]>,
+    pub direct: Vec<[f32; 3]>,
+    pub indirect: Vec<[f32; 3]>,
+    pub features: Vec<f32>,
+}
+
+impl SurfelShading {
+    /// Shade for `camera` with `channels` = [`TRAIN_CHANNELS`] or [`VIEW_CHANNELS`].
+    pub fn compute(
+        &mut self,
+        surfels: &Surfels,
+        mats: &MaterialView,
+        cache: &IncidentCache,
+        env: &EnvMap,
+        camera: &Camera,
+        channels: usize,
+    ) {
+        let n = surfels.len();
+        let eye = camera.position().to_array();
+        self.view.resize(n, [0.0; 3]);
+        self.active.clear();
+        for i in 0..n {
+            let w = view_dir(surfels.means[i], eye);
+            self.view[i] = w;
+            let nn = mats.normal[i];
+            let facing = nn[0] * w[0] + nn[1] * w[1] + nn[2] * w[2] > 0.0;
+            let z = camera.world_to_camera(glam::Vec3::from(surfels.means[i])).z;
+            if facing && z > 0.0 {
+                self.active.push(i as u32);
+            }
+        }
+        let m = self.active.len();
+        self.direct.resize(m, [0.0; 3]);
+        self.indirect.resize(m, [0.0; 3]);
+        let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &self.view);
+        shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
+        self.features.clear();
+        self.features.resize(n * channels, 0.0);
+        for i in 0..n {
+            let f = &mut self.features[i * channels..(i + 1) * channels];
+            f[3..6].copy_from_slice(&mats.albedo[i]);
+            f[6] = mats.roughness[i];
+            if channels >= VIEW_CHANNELS {
+                f[10] = cache.mean_visibility(i, mats.normal[i]);
+            }
+        }
+        for (k, &i) in self.active.iter().enumerate() {
+            let f = &mut self.features[i as usize * channels..(i as usize + 1) * channels];
+            for ch in 0..3 {
+                f[ch] = self.direct[k][ch] + self.indirect[k][ch];
+                if channels >= VIEW_CHANNELS {
+                    f[7 + ch] = self.indirect[k][ch];
+                }
+            }
+        }
+    }
+}
+
+/// Losses of one iteration (unweighted).
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct InverseLosses {
+    pub total: f32,
+    pub pbr_l1: f32,
+    pub pbr_dssim: f32,
+    pub sh_l1: f32,
+    pub sh_dssim: f32,
+    pub mask: f32,
+    pub normal: f32,
+    pub smooth: f32,
+    pub env_prior: f32,
+    pub rc: RcLosses,
+    pub psnr_pbr: f32,
+    pub psnr_sh: f32,
+}
+
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct InverseTimes {
+    pub shading: f64,
+    pub raster_forward: f64,
+    pub losses: f64,
+    pub raster_backward: f64,
+    pub shading_backward: f64,
+    pub consistency: f64,
+    pub optimiser: f64,
+    pub tracer_refit: f64,
+    pub cache_refresh: f64,
+}
+
+#[derive(Default)]
+struct Scratch {
+    gt: Vec<[f32; 3]>,
+    pbr_lin: Vec<[f32; 3]>,
+    pbr_srgb: Vec<[f32; 3]>,
+    v_pbr_srgb: Vec<[f32; 3]>,
+    grads: RenderGrads,
+    ssim_sh: Ssim,
+    ssim_pbr: Ssim,
+    normal: NormalConsistency,
+    smooth: EdgeAwareSmoothness,
+    map: Vec<f32>,
+    v_map: Vec<f32>,
+    v_feat: Vec<f32>,
+    shading: SurfelShading,
+    sub: SubsetGrads,
+    v_sub_pbr: Vec<[f32; 3]>,
+    mats: MaterialView,
+    mgrads: MaterialGrads,
+    v_env: Vec<[f32; 3]>,
+    v_env_log: Vec<f32>,
+    rc: RcScratch,
+}
+
+fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
+    RcSettings {
+        surfels: cfg.rc_surfels,
+        rays: cfg.rc_rays,
+        offset: cfg.ray_offset * extent,
+        weight: cfg.lambda_rc,
+        detach: Detach { env: cfg.detach_env, material: cfg.detach_material, normal: cfg.detach_normal },
+        detach_lhs: cfg.detach_lhs,
+        detach_rhs: cfg.detach_rhs,
+    }
+}
+
+/// One iteration's forward and backward: gradients into `v_surfels` and `sc.v_env`.
+#[allow(clippy::too_many_arguments)]
+fn iterate(
+    cfg: &TrainConfig,
+    state: &InverseState,
+    env: &EnvMap,
+    tracer: &Tracer,
+    images: &TrainImages,
+    view_index: usize,
+    bg: [f32; 3],
+    rng: &mut rand_pcg::Pcg64,
+    sc: &mut Scratch,
+    v_surfels: &mut Surfels,
+    t: &mut InverseTimes,
+) -> InverseLosses {
+    let s = &state.surfels;
+    let cam = &images.cameras[view_index];
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let np = w * h;
+    let ch = TRAIN_CHANNELS;
+    let t0 = Instant::now();
+    sc.mats.update(s);
+    sc.shading.compute(s, &sc.mats, &state.cache, env, cam, ch);
+    let t1 = Instant::now();
+    t.shading += (t1 - t0).as_secs_f64();
+    let settings = RasterSettings {
+        window: cfg.window,
+        two_sided: false,
+        background: bg,
+        outputs: Outputs { colour: true, depth: true, median_depth: false, normal: true, distortion: false },
+        ..RasterSettings::default()
+    };
+    let features = Features { data: &sc.shading.features, channels: ch };
+    let (out, fwd) = raster::render(s, cam, &settings, Some(features));
+    let t2 = Instant::now();
+    t.raster_forward += (t2 - t1).as_secs_f64();
+
+    // Ground truth over the iteration's background.
+    let rgb = &images.rgb[view_index];
+    let alpha = &images.alpha[view_index];
+    sc.gt.clear();
+    sc.gt.extend(rgb.iter().zip(alpha).map(|(c, &a)| [0, 1, 2].map(|k| c[k] * a + bg[k] * (1.0 - a))));
+    let g = &mut sc.grads;
+    g.v_colour.clear();
+    g.v_colour.resize(np, [0.0; 3]);
+    g.v_alpha.clear();
+    g.v_alpha.resize(np, 0.0);
+    g.v_depth.clear();
+    g.v_depth.resize(np, 0.0);
+    g.v_normal.clear();
+    g.v_normal.resize(np, [0.0; 3]);
+    g.v_features.clear();
+    g.v_features.resize(np * ch, 0.0);
+    g.v_distortion.clear();
+    g.v_median_depth.clear();
+    let mut l = InverseLosses::default();
+
+    // SH image.
+    let ws = cfg.lambda_sh_image;
+    let lam = cfg.lambda_dssim;
+    if ws > 0.0 {
+        l.sh_l1 = loss::l1_rgb(&out.colour, &sc.gt, None, ws * (1.0 - lam), &mut g.v_colour);
+        l.sh_dssim = sc.ssim_sh.dssim_loss(&out.colour, &sc.gt, w, h, ws * lam, &mut g.v_colour);
+        l.total += ws * ((1.0 - lam) * l.sh_l1 + lam * l.sh_dssim);
+    }
+    l.psnr_sh = loss::psnr(&out.colour, &sc.gt);
+
+    // PBR image: linear features over the linear background, then sRGB.
+    let bg_lin = bg.map(crate::io::image::srgb_to_linear);
+    sc.pbr_lin.clear();
+    sc.pbr_lin.extend((0..np).map(|p| {
+        let f = &out.features[p * ch..p * ch + 3];
+        [0, 1, 2].map(|k| f[k] + (1.0 - out.alpha[p]) * bg_lin[k])
+    }));
+    sc.pbr_srgb.clear();
+    sc.pbr_srgb.extend(sc.pbr_lin.iter().map(|c| c.map(encode)));
+    l.psnr_pbr = loss::psnr(&sc.pbr_srgb, &sc.gt);
+    let wp = cfg.lambda_pbr;
+    if wp > 0.0 {
+        sc.v_pbr_srgb.clear();
+        sc.v_pbr_srgb.resize(np, [0.0; 3]);
+        l.pbr_l1 = loss::l1_rgb(&sc.pbr_srgb, &sc.gt, None, wp, &mut sc.v_pbr_srgb);
+        l.pbr_dssim = sc.ssim_pbr.dssim_loss(&sc.pbr_srgb, &sc.gt, w, h, wp * 0.2, &mut sc.v_pbr_srgb);
+        l.total += wp * (l.pbr_l1 + 0.2 * l.pbr_dssim);
+        for p in 0..np {
+            let mut va = 0.0;
+            for k in 0..3 {
+                let v = sc.v_pbr_srgb[p][k] * encode_derivative(sc.pbr_lin[p][k]);
+                g.v_features[p * ch + k] += v;
+                va -= v * bg_lin[k];
+            }
+            g.v_alpha[p] += va;
+        }
+    }
+    if cfg.lambda_mask_inverse > 0.0 {
+        l.mask = loss::mask_bce(&out.alpha, alpha, cfg.lambda_mask_inverse, &mut g.v_alpha);
+        l.total += cfg.lambda_mask_inverse * l.mask;
+    }
+    if cfg.lambda_normal > 0.0 {
+        l.normal = sc.normal.loss(
+            cam,
+            &out.depth,
+            &out.normal,
+            Some(&out.alpha),
+            Some(alpha),
+            cfg.lambda_normal,
+            &mut g.v_depth,
+            &mut g.v_normal,
+        );
+        l.total += cfg.lambda_normal * l.normal;
+    }
+    // Edge-aware smoothness of the rendered albedo, roughness and normal maps.
+    sc.smooth.prepare(&sc.gt, w, h);
+    for (first, count, weight) in [(3usize, 3usize, cfg.lambda_smooth_albedo), (6, 1, cfg.lambda_smooth_roughness)] {
+        if weight <= 0.0 {
+            continue;
+        }
+        sc.map.clear();
+        for p in 0..np {
+            sc.map.extend_from_slice(&out.features[p * ch + first..p * ch + first + count]);
+        }
+        sc.v_map.clear();
+        sc.v_map.resize(np * count, 0.0);
+        let v = sc.smooth.loss_prepared(&sc.map, count, Some(alpha), weight, &mut sc.v_map);
+        l.smooth += weight * v;
+        for p in 0..np {
+            for c in 0..count {
+                g.v_features[p * ch + first + c] += sc.v_map[p * count + c];
+            }
+        }
+    }
+    if cfg.lambda_smooth_normal > 0.0 {
+        sc.v_map.clear();
+        sc.v_map.resize(np * 3, 0.0);
+        let v = sc.smooth.loss_prepared(out.normal.as_flattened(), 3, Some(alpha), cfg.lambda_smooth_normal, &mut sc.v_map);
+        l.smooth += cfg.lambda_smooth_normal * v;
+        for (d, s) in g.v_normal.as_flattened_mut().iter_mut().zip(&sc.v_map) {
+            *d += s;
+        }
+    }
+    l.total += l.smooth;
+    let t3 = Instant::now();
+    t.losses += (t3 - t2).as_secs_f64();
+
+    sc.v_feat.clear();
+    sc.v_feat.resize(s.len() * ch, 0.0);
+    raster::render_backward(s, cam, &settings, Some(features), &fwd, &sc.grads, v_surfels, Some(&mut sc.v_feat));
+    let t4 = Instant::now();
+    t.raster_backward += (t4 - t3).as_secs_f64();
+
+    // Through the per-surfel shading (PBR image path: no detach).
+    let n = s.len();
+    sc.mgrads.reset(n);
+    let sh = &sc.shading;
+    sc.v_sub_pbr.clear();
+    sc.v_sub_pbr.extend(sh.active.iter().map(|&i| {
+        let f = &sc.v_feat[i as usize * ch..i as usize * ch + 3];
+        [f[0], f[1], f[2]]
+    }));
+    let inp = state.cache.inputs(&sc.mats.albedo, &sc.mats.roughness, &sc.mats.normal, &sh.view);
+    shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
+        .expect("sized above");
+    let eye = cam.position().to_array();
+    for (k, &i) in sh.active.iter().enumerate() {
+        let i = i as usize;
+        for c in 0..3 {
+            sc.mgrads.v_albedo[i][c] += sc.sub.v_albedo[k][c];
+            sc.mgrads.v_normal[i][c] += sc.sub.v_normal[k][c];
+        }
+        sc.mgrads.v_roughness[i] += sc.sub.v_roughness[k];
+        let vm = view_dir_backward(s.means[i], eye, sc.sub.v_view[k]);
+        for c in 0..3 {
+            sc.mgrads.v_means[i][c] += vm[c];
+        }
+    }
+    for i in 0..n {
+        let f = &sc.v_feat[i * ch..(i + 1) * ch];
+        for c in 0..3 {
+            sc.mgrads.v_albedo[i][c] += f[3 + c];
+        }
+        sc.mgrads.v_roughness[i] += f[6];
+    }
+    sc.v_env.clear();
+    sc.v_env.extend_from_slice(&sc.sub.v_env);
+    let t5 = Instant::now();
+    t.shading_backward += (t5 - t4).as_secs_f64();
+
+    // Radiometric consistency.
+    if cfg.lambda_rc > 0.0 {
+        let rc = rc_settings(cfg, state.extent);
+        l.rc = radiometric_consistency(
+            s,
+            &sc.mats,
+            tracer,
+            env,
+            Some(eye),
+            rng,
+            &rc,
+            &mut sc.rc,
+            v_surfels,
+            &mut sc.mgrads,
+            &mut sc.v_env,
+        );
+        l.total += l.rc.total;
+    }
+    t.consistency += t5.elapsed().as_secs_f64();
+    sc.mgrads.chain_into(s, v_surfels);
+
+    // Env priors on the linear texels, then the exp activation.
+    let hh = state.env_height;
+    if cfg.lambda_white_light > 0.0 {
+        l.env_prior += cfg.lambda_white_light * loss::white_light_prior(&env.texels, cfg.lambda_white_light, &mut sc.v_env);
+    }
+    if cfg.lambda_env_tv > 0.0 {
+        l.env_prior += cfg.lambda_env_tv * loss::env_tv(&env.texels, 2 * hh, hh, cfg.lambda_env_tv, &mut sc.v_env);
+    }
+    l.total += l.env_prior;
+    sc.v_env_log.clear();
+    sc.v_env_log.extend(sc.v_env.iter().zip(&env.texels).flat_map(|(v, t)| [v[0] * t[0], v[1] * t[1], v[2] * t[2]]));
+    l
+}
+
+/// Run (or resume) the inverse stage into `cfg.out`, starting from the run's nvs checkpoint.
+pub fn run(cfg: &TrainConfig, dataset: &Dataset, show_progress: bool) -> anyhow::Result<StageSummary> {
+    run_until(cfg, dataset, show_progress, None)
+}
+
+/// As [`run`], stopping as if interrupted after iteration `stop_after`.
+pub fn run_until(
+    cfg: &TrainConfig,
+    dataset: &Dataset,
+    show_progress: bool,
+    stop_after: Option<u32>,
+) -> anyhow::Result<StageSummary> {
+    let images = TrainImages::load(dataset, Split::Train)?;
+    if images.cameras.is_empty() {
+        anyhow::bail!("{}: the dataset has no training views", dataset.root.display());
+    }
+    let ckpt_path = checkpoint_path(&cfg.out);
+    let mut state = if cfg.resume && ckpt_path.is_file() {
+        let c = Checkpoint::load(&ckpt_path)?;
+        InverseState::from_checkpoint(&ckpt_path, &c, cfg)?
+    } else {
+        let nvs_path = nvs::checkpoint_path(&cfg.out);
+        if !nvs_path.is_file() {
+            anyhow::bail!(
+                "{}: no nvs checkpoint; the inverse stage starts from the geometry of `radiogs train --stage nvs` \
+                 (or run --stage all)",
+                nvs_path.display()
+            );
+        }
+        let c = Checkpoint::load(&nvs_path)?;
+        if c.meta.get("stage").and_then(|s| s.as_str()) != Some("nvs") {
+            anyhow::bail!("{}: not an nvs-stage checkpoint", nvs_path.display());
+        }
+        let mut surfels = c.get_surfels(&nvs_path, "params")?;
+        surfels.sh_degree = 3;
+        let (_, extent) = dataset.camera_extent();
+        InverseState::from_nvs(cfg, surfels, &images.cameras, extent)
+    };
+    interrupt::install();
+    let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
+    let mut tracer = Tracer::build(&state.surfels, &trace_settings());
+    let offset = cfg.ray_offset * state.extent;
+    let mut times = InverseTimes::default();
+    if state.cache.len() != state.surfels.len() || state.cache.samples != cfg.pbr_samples {
+        let t = Instant::now();
+        state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, offset, cfg.seed ^ state.iteration as u64);
+        times.cache_refresh += t.elapsed().as_secs_f64();
+    }
+    let bar = progress_bar("inverse", cfg.inverse_iters, state.iteration);
+    if !show_progress {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let mut sc = Scratch::default();
+    let mut v_surfels = state.surfels.zeros_like();
+    let started = Instant::now();
+    let mut last = InverseLosses::default();
+    let mut interrupted = false;
+    while state.iteration < cfg.inverse_iters {
+        if interrupt::requested() || stop_after.is_some_and(|s| state.iteration >= s) {
+            interrupted = true;
+            break;
+        }
+        state.iteration += 1;
+        let it = state.iteration;
+        let mut rng = iteration_rng(cfg.seed, it, 0x1_0000_0011);
+        let bg = match cfg.background {
+            Background::Random => [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()],
+            Background::White => [1.0; 3],
+            Background::Black => [0.0; 3],
+        };
+        let view = view_for_iteration(cfg.seed ^ 0x1a7e, it, images.cameras.len());
+        v_surfels.fill_zero();
+        v_surfels.sh_degree = state.surfels.sh_degree;
+        let env = state.env();
+        last = iterate(cfg, &state, &env, &tracer, &images, view, bg, &mut rng, &mut sc, &mut v_surfels, &mut times);
+        if !last.total.is_finite() {
+            anyhow::bail!("inverse iteration {it}: the loss is {} (diverged); lower the learning rates", last.total);
+        }
+        let t_opt = Instant::now();
+        state.adam.step(&mut state.surfels, &v_surfels);
+        state.env_adam.step(&mut state.env_log, &sc.v_env_log);
+        times.optimiser += t_opt.elapsed().as_secs_f64();
+
+        // The consistency rows are fresh traces: keep them (when they match the cache layout).
+        if cfg.lambda_rc > 0.0 && cfg.rc_rays == cfg.pbr_samples {
+            for k in 0..sc.rc.ids.len() {
+                let (d, v, ind) = sc.rc.row(k, cfg.rc_rays);
+                state.cache.overwrite_row(sc.rc.ids[k] as usize, &d, &v, &ind);
+            }
+        }
+        let t_fit = Instant::now();
+        tracer.refit(&state.surfels);
+        if tracer.needs_rebuild() {
+            tracer = Tracer::build(&state.surfels, &trace_settings());
+        }
+        times.tracer_refit += t_fit.elapsed().as_secs_f64();
+        if it % cfg.cache_every == 0 && it < cfg.inverse_iters {
+            let t = Instant::now();
+            state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, offset, cfg.seed ^ it as u64);
+            times.cache_refresh += t.elapsed().as_secs_f64();
+        }
+        if it % cfg.log_every == 0 || it == cfg.inverse_iters {
+            let line = serde_json::json!({
+                "stage": "inverse", "iteration": it, "loss": last.total, "psnr_pbr": last.psnr_pbr,
+                "psnr_sh": last.psnr_sh, "pbr_l1": last.pbr_l1, "sh_l1": last.sh_l1, "rc_camera": last.rc.camera,
+                "rc_random": last.rc.random, "mask": last.mask, "normal": last.normal, "smooth": last.smooth,
+                "env_prior": last.env_prior, "seconds": started.elapsed().as_secs_f64(),
+            });
+            writeln!(metrics, "{line}").context("writing metrics_inverse.jsonl")?;
+            bar.set_message(format!(
+                "loss {:.4} pbr {:.2} dB sh {:.2} dB rc {:.4}",
+                last.total,
+                last.psnr_pbr,
+                last.psnr_sh,
+                last.rc.camera + last.rc.random
+            ));
+        }
+        bar.set_position(it as u64);
+        if cfg.checkpoint_every > 0 && it % cfg.checkpoint_every == 0 && it < cfg.inverse_iters {
+            state.to_checkpoint(cfg).save(&ckpt_path)?;
+        }
+    }
+    bar.finish_and_clear();
+    state.to_checkpoint(cfg).save(&ckpt_path)?;
+    if !interrupted {
+        write_ply(&cfg.out.join("point_cloud.ply"), &state.surfels)?;
+        state.env().save(&cfg.out.join("envmap.exr"))?;
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    let split = serde_json::to_value(times)?;
+    crate::io::atomic::write_atomic(
+        &cfg.out.join("inverse_times.json"),
+        serde_json::to_string_pretty(&serde_json::json!({
+            "iterations": state.iteration, "seconds": seconds, "split_seconds": split,
+            "surfels": state.surfels.len(), "pbr_samples": cfg.pbr_samples, "rc_surfels": cfg.rc_surfels,
+            "rc_rays": cfg.rc_rays, "lambda_rc": cfg.lambda_rc,
+        }))?
+        .as_bytes(),
+    )?;
+    Ok(StageSummary {
+        iterations: state.iteration,
+        surfels: state.surfels.len(),
+        seconds,
+        last_psnr: last.psnr_pbr,
+        time_split: TimeSplit {
+            raster_forward: times.raster_forward,
+            raster_backward: times.raster_backward,
+            losses: times.losses,
+            densify: 0.0,
+            optimiser: times.optimiser,
+            other: times.shading + times.shading_backward + times.consistency + times.tracer_refit + times.cache_refresh,
+        },
+        interrupted,
+    })
+}

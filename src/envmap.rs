@@ -175,6 +175,18 @@ impl EnvMap {
         out
     }
 
+    /// A picture for people: each texel × `exposure`, sRGB-encoded and clipped (RGBA, α = 1).
+    pub fn to_display_image(&self, exposure: f32) -> crate::io::image::Image {
+        let mut img = crate::io::image::Image::new(self.width as u32, self.height as u32, 4);
+        for (px, t) in img.data.chunks_exact_mut(4).zip(&self.texels) {
+            for ch in 0..3 {
+                px[ch] = crate::io::image::linear_to_srgb(t[ch] * exposure);
+            }
+            px[3] = 1.0;
+        }
+        img
+    }
+
     /// Mean radiance weighted by solid angle (the irradiance-equivalent constant).
     pub fn mean_radiance(&self) -> [f32; 3] {
         let mut acc = [0.0f64; 3];

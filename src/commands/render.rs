@@ -30,6 +30,25 @@ pub enum RenderMode {
     Surfel,
     /// The ray tracer: exact per-ray hit order (no screen-space fallback); colour and alpha only.
     Traced,
+    /// Physically based: each surfel's rendering equation under the run's env (or --envmap),
+    /// with its cached visibility and indirect light (needs a run after the inverse stage).
+    Pbr,
+    /// Recovered base colour (linear, shown sRGB-encoded in PNG).
+    Albedo,
+    /// Recovered roughness (grey).
+    Roughness,
+    /// World normal (n·0.5 + 0.5 in PNG), back faces culled.
+    Normal,
+    /// Cosine-weighted visibility of the sky per surfel (grey).
+    Visibility,
+    /// Outgoing radiance due to indirect light (the L_ind part of the rendering equation).
+    Indirect,
+}
+
+impl RenderMode {
+    fn needs_materials(self) -> bool {
+        !matches!(self, RenderMode::Surfel | RenderMode::Traced)
+    }
 }
 
 /// Render views of a surfel scene.
@@ -75,6 +94,11 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = RenderMode::Surfel)]
     #[serde(default)]
     pub mode: RenderMode,
+    /// Light the PBR modes with this env map (.hdr/.exr, Blender's orientation) instead of the
+    /// run's recovered one. (Indirect light stays the trained scene's; `radiogs relight` for more.)
+    #[arg(long)]
+    #[serde(default)]
+    pub envmap: Option<PathBuf>,
 }
 
 fn default_k() -> usize {
@@ -125,6 +149,9 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     if args.mode == RenderMode::Traced && args.aux {
         bail!("--aux is only available with --mode surfel");
     }
+    if args.mode.needs_materials() {
+        return render_pbr_modes(args, &views);
+    }
     let bar = indicatif::ProgressBar::new(views.len() as u64);
     for view in &views {
         let cam = &view.camera;
@@ -134,6 +161,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                 let (colour, alpha) = crate::trace::render_camera_traced(&surfels, cam, &trace_settings);
                 raster::RenderOutput { width: cam.width, height: cam.height, colour, alpha, ..Default::default() }
             }
+            mode => bail!("--mode {mode:?} is rendered by the material path"),
         };
         let (w, h) = (img.width, img.height);
         let mut rgba = Image::new(w, h, 4);
@@ -159,6 +187,59 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     println!("rendered {} views of {} surfels to {}", views.len(), surfels.len(), args.out.display());
+    Ok(())
+}
+
+/// The PBR / material modes: one rasterisation with feature channels per view.
+fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> anyhow::Result<()> {
+    use crate::io::image::linear_to_srgb;
+    let Some(run) = &args.run else { bail!("--mode {:?} needs --run RUN (a run after the inverse stage)", args.mode) };
+    let Some(mut scene) = crate::pbr_scene::PbrScene::from_run(run)? else {
+        bail!(
+            "{}: no envmap.exr, so no recovered materials and light; run `radiogs train --stage inverse` first",
+            run.display()
+        )
+    };
+    if let Some(path) = &args.envmap {
+        let env = crate::envmap::EnvMap::load(path)?;
+        scene.env = env;
+    }
+    scene.window = args.k;
+    let bar = indicatif::ProgressBar::new(views.len() as u64);
+    let png = args.format == ImageFormat::Png;
+    for view in views {
+        let cam = &view.camera;
+        let img = scene.render(cam, [0.0; 3]);
+        let mut rgba = Image::new(cam.width, cam.height, 4);
+        for (i, px) in rgba.data.chunks_exact_mut(4).enumerate() {
+            let a = img.alpha[i];
+            // Straight linear values (PBR: linear radiance recovered from the sRGB render over black).
+            let lin: [f32; 3] = match args.mode {
+                RenderMode::Pbr => img.pbr[i].map(|v| crate::io::image::srgb_to_linear(v) / a.max(1e-3)),
+                RenderMode::Albedo => img.albedo[i],
+                RenderMode::Roughness => [img.roughness[i]; 3],
+                RenderMode::Visibility => [img.visibility[i]; 3],
+                RenderMode::Indirect => img.indirect[i],
+                _ => {
+                    let n = img.normal[i];
+                    let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().max(1e-8);
+                    n.map(|v| v / l)
+                }
+            };
+            let out: [f32; 3] = match (png, args.mode) {
+                (true, RenderMode::Normal) => lin.map(|v| v * 0.5 + 0.5),
+                (true, RenderMode::Roughness | RenderMode::Visibility) => lin,
+                (true, _) => lin.map(linear_to_srgb),
+                (false, _) => lin.map(|v| v * a),
+            };
+            px.copy_from_slice(&[out[0], out[1], out[2], a]);
+        }
+        let ext = if png { "png" } else { "exr" };
+        write_image(&args.out.join(format!("{}.{ext}", cam.name)), &rgba)?;
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    println!("rendered {} views ({:?}) of {} surfels to {}", views.len(), args.mode, scene.surfels.len(), args.out.display());
     Ok(())
 }
 

@@ -1,0 +1,126 @@
+//! A trained relightable scene — surfels with materials, an env map and the per-surfel
+//! incident-light cache — and its pictures: SH radiance, PBR (linear → sRGB), albedo,
+//! roughness, indirect radiance (the L_ind part of each surfel's rendering equation),
+//! visibility (cosine-weighted, per surfel) and normals, all from one rasterisation with
+//! feature channels and back faces culled (the PBR stages' convention).
+
+use crate::camera::Camera;
+use crate::envmap::EnvMap;
+use crate::raster::{self, Features, Outputs, RasterSettings};
+use crate::shade::incident::IncidentCache;
+use crate::surfels::Surfels;
+use crate::train::consistency::encode;
+use crate::train::inverse::{SurfelShading, VIEW_CHANNELS, trace_settings};
+use crate::train::material::MaterialView;
+use crate::trace::Tracer;
+use std::path::Path;
+
+pub struct PbrScene {
+    pub surfels: Surfels,
+    pub env: EnvMap,
+    pub cache: IncidentCache,
+    pub mats: MaterialView,
+    pub window: usize,
+}
+
+/// Straight-alpha pictures of one view (colours over `bg` where they are composited).
+#[derive(Clone, Debug, Default)]
+pub struct PbrImages {
+    pub width: u32,
+    pub height: u32,
+    pub alpha: Vec<f32>,
+    /// SH radiance (sRGB) over the background.
+    pub sh: Vec<[f32; 3]>,
+    /// PBR radiance, sRGB-encoded (clipped), over the background.
+    pub pbr: Vec<[f32; 3]>,
+    /// Linear albedo / roughness / indirect radiance / visibility, un-premultiplied (0 where α ≈ 0).
+    pub albedo: Vec<[f32; 3]>,
+    pub roughness: Vec<f32>,
+    pub indirect: Vec<[f32; 3]>,
+    pub visibility: Vec<f32>,
+    /// World normal Σ w n (not normalised).
+    pub normal: Vec<[f32; 3]>,
+}
+
+impl PbrScene {
+    /// A scene from its parts; traces the incident cache (S samples, ray offset in scene units).
+    pub fn new(surfels: Surfels, env: EnvMap, samples: usize, offset: f32, window: usize, seed: u64) -> PbrScene {
+        let tracer = Tracer::build(&surfels, &trace_settings());
+        let mut cache = IncidentCache::default();
+        cache.refresh(&tracer, &surfels, samples, offset, seed);
+        let mut mats = MaterialView::default();
+        mats.update(&surfels);
+        PbrScene { surfels, env, cache, mats, window }
+    }
+
+    /// The scene of a run after the inverse stage (`point_cloud.ply` + `envmap.exr`), or None
+    /// when the run has no recovered light yet.
+    pub fn from_run(run: &Path) -> anyhow::Result<Option<PbrScene>> {
+        let env_path = run.join("envmap.exr");
+        if !env_path.is_file() {
+            return Ok(None);
+        }
+        let cfg = crate::eval::load_run_config(run)?;
+        let surfels = crate::eval::load_run_surfels(run)?;
+        let env = EnvMap::load(&env_path)?;
+        let extent = scene_extent(run);
+        Ok(Some(PbrScene::new(surfels, env, cfg.pbr_samples, cfg.ray_offset * extent, cfg.window, cfg.seed)))
+    }
+
+    /// Render one view over the background `bg` (sRGB).
+    pub fn render(&self, cam: &Camera, bg: [f32; 3]) -> PbrImages {
+        let mut shading = SurfelShading::default();
+        shading.compute(&self.surfels, &self.mats, &self.cache, &self.env, cam, VIEW_CHANNELS);
+        self.render_features(cam, bg, &shading.features)
+    }
+
+    /// Rasterise per-surfel features laid out as [`VIEW_CHANNELS`].
+    pub fn render_features(&self, cam: &Camera, bg: [f32; 3], features: &[f32]) -> PbrImages {
+        let ch = VIEW_CHANNELS;
+        let settings = RasterSettings {
+            window: self.window,
+            two_sided: false,
+            background: bg,
+            outputs: Outputs { colour: true, depth: false, median_depth: false, normal: true, distortion: false },
+            ..RasterSettings::default()
+        };
+        let (out, _) = raster::render(&self.surfels, cam, &settings, Some(Features { data: features, channels: ch }));
+        let np = out.alpha.len();
+        let bg_lin = bg.map(crate::io::image::srgb_to_linear);
+        let mut img = PbrImages {
+            width: cam.width,
+            height: cam.height,
+            alpha: out.alpha.clone(),
+            sh: out.colour,
+            normal: out.normal,
+            ..Default::default()
+        };
+        for p in 0..np {
+            let f = &out.features[p * ch..(p + 1) * ch];
+            let a = out.alpha[p];
+            let inv = if a > 1e-3 { 1.0 / a } else { 0.0 };
+            img.pbr.push([0, 1, 2].map(|k| encode(f[k] + (1.0 - a) * bg_lin[k]).min(1.0)));
+            img.albedo.push([f[3] * inv, f[4] * inv, f[5] * inv]);
+            img.roughness.push(f[6] * inv);
+            img.indirect.push([f[7] * inv, f[8] * inv, f[9] * inv]);
+            img.visibility.push(f[10] * inv);
+        }
+        img
+    }
+}
+
+/// The scene extent the run trained with (from its inverse checkpoint), else the radius of
+/// the surfels' bounding box.
+pub fn scene_extent(run: &Path) -> f32 {
+    let ckpt = crate::train::inverse::checkpoint_path(run);
+    if let Ok(c) = crate::train::checkpoint::Checkpoint::load(&ckpt)
+        && let Some(e) = c.meta.get("extent").and_then(|v| v.as_f64())
+    {
+        return e as f32;
+    }
+    crate::eval::load_run_surfels(run)
+        .ok()
+        .and_then(|s| s.bounds())
+        .map(|(lo, hi)| 0.5 * ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2) + (hi[2] - lo[2]).powi(2)).sqrt())
+        .unwrap_or(1.0)
+}

@@ -12,6 +12,7 @@ pub mod loss;
 pub mod optim;
 pub mod pbr_scene;
 pub mod raster;
+pub mod relight;
 pub mod sh;
 pub mod shade;
 pub mod surfels;

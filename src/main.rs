@@ -2,7 +2,7 @@
 //! a non-zero exit code (2 for commands that are not built yet).
 
 use clap::{CommandFactory, FromArgMatches, Subcommand};
-use radiogs::commands::{demo, export, info, render, stubs};
+use radiogs::commands::{demo, export, info, render};
 
 #[derive(clap::Parser, Debug)]
 #[command(
@@ -24,7 +24,7 @@ enum Command {
     /// Render views of a trained run or of a PLY file from a camera file.
     Render(render::RenderArgs),
     /// Put a trained scene under a new environment map (surfel finetune or ray-traced PBR).
-    Relight(stubs::RelightArgs),
+    Relight(radiogs::relight::RelightArgs),
     /// Evaluate a run against a dataset's test views (NVS, albedo, normals, relighting) as JSON.
     Eval(radiogs::eval::EvalArgs),
     /// Write a run's surfels as a 2DGS/3DGS-compatible PLY (with material fields).
@@ -57,7 +57,7 @@ fn main() {
                 .and_then(|cfg| radiogs::train::run(&cfg))
         }
         Command::Render(args) => render::run(args),
-        Command::Relight(_) => stubs::not_built("radiogs relight is not built yet (issue 8)"),
+        Command::Relight(args) => radiogs::relight::run(args),
         Command::Eval(args) => radiogs::eval::run(args),
         Command::Export(args) => export::run(args),
         Command::Bench(cmd) => radiogs::bench::run(cmd),

@@ -64,7 +64,14 @@ impl PbrScene {
         let surfels = crate::eval::load_run_surfels(run)?;
         let env = EnvMap::load(&env_path)?;
         let extent = scene_extent(run);
-        Ok(Some(PbrScene::new(surfels, env, cfg.pbr_samples, cfg.ray_offset * extent, cfg.window, cfg.seed)))
+        let offset = cfg.ray_offset * extent;
+        if crate::relight::run_mode(run) == Some(crate::relight::RelightMode::Traced) {
+            let mut mats = MaterialView::default();
+            mats.update(&surfels);
+            let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, offset, cfg.seed)?;
+            return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window }));
+        }
+        Ok(Some(PbrScene::new(surfels, env, cfg.pbr_samples, offset, cfg.window, cfg.seed)))
     }
 
     /// Render one view over the background `bg` (sRGB).

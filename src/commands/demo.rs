@@ -85,7 +85,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     };
     crate::train::run(&cfg)?;
     eprintln!("[3/3] evaluating");
-    crate::eval::run(&crate::eval::EvalArgs { run: run.clone(), data: Some(data.clone()), json: None, limit: 0 })?;
+    crate::eval::run(&crate::eval::EvalArgs { run: run.clone(), data: Some(data.clone()), json: None, limit: 0, no_relight: false, relight_iters: 300, relight_samples: 64 })?;
     let report = args.out.join("report.html");
     write_report(&report, &data, &run, started.elapsed().as_secs_f64())?;
     let overview = args.out.join("overview.png");

@@ -4,4 +4,3 @@ pub mod demo;
 pub mod export;
 pub mod info;
 pub mod render;
-pub mod stubs;

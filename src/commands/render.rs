@@ -152,6 +152,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     if args.mode.needs_materials() {
         return render_pbr_modes(args, &views);
     }
+    if args.mode == RenderMode::Surfel
+        && let Some(run) = &args.run
+        && crate::relight::run_mode(run) == Some(crate::relight::RelightMode::Traced)
+    {
+        eprintln!("{}: a ray-traced relit run renders with --mode pbr", run.display());
+        return render_pbr_modes(&RenderArgs { mode: RenderMode::Pbr, ..args.clone() }, &views);
+    }
     let bar = indicatif::ProgressBar::new(views.len() as u64);
     for view in &views {
         let cam = &view.camera;

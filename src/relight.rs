@@ -1,0 +1,307 @@
+//! Relighting (RadioGS §relighting, DESIGN §1): put a trained scene under a new env map.
+//!
+//! - `finetune`: geometry and materials frozen, env = the new map; only the SH radiance is
+//!   optimised, by the radiometric-consistency loss alone (λ 1), then the scene renders by plain
+//!   rasterisation. The SH start from the ray-traced prediction (below) seen along each
+//!   surfel's normal (DC only), so the finetune mostly adds view dependence and the
+//!   inter-reflections of the new light. The right-hand side is detached (each step fits the
+//!   SH to the rendering equation evaluated with the current SH as indirect light: a
+//!   fixed-point iteration), which spares the tracer's backward pass.
+//! - `traced`: no optimisation; per surfel, visibility and indirect light are traced under the
+//!   new map, the indirect radiance of a hit surfel being its split-sum colour seen along its
+//!   normal (diffuse irradiance + prefiltered specular); the PBR render shows the result.
+
+use crate::camera::Camera;
+use crate::envmap::EnvMap;
+use crate::optim::{LearningRates, SurfelAdam};
+use crate::shade::incident::{IncidentCache, rotation_for, surfel_rays};
+use crate::shade::pbr::{Detach, shade_surfels};
+use crate::shade::splitsum::SplitSum;
+use crate::surfels::Surfels;
+use crate::trace::{Features, Ray, RayOutput, Tracer, trace};
+use crate::train::consistency::{RcScratch, RcSettings, encode, radiometric_consistency};
+use crate::train::inverse::trace_settings;
+use crate::train::material::{MaterialGrads, MaterialView};
+use anyhow::Context;
+use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RelightMode {
+    /// Finetune the SH radiance with radiometric consistency; render by rasterisation.
+    Finetune,
+    /// Ray-traced PBR per surfel under the new light; no finetune.
+    Traced,
+}
+
+/// Put a trained scene (after the inverse stage) under a new environment map.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RelightArgs {
+    /// Trained run folder (with envmap.exr, i.e. after `--stage inverse`).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// New environment map (.hdr or .exr, Blender's equirectangular orientation).
+    #[arg(long)]
+    pub envmap: PathBuf,
+    /// New run folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, value_enum, default_value_t = RelightMode::Finetune)]
+    pub mode: RelightMode,
+    /// Finetune iterations.
+    #[arg(long, default_value_t = 400)]
+    pub iters: u32,
+    /// Rotate the map about the up axis (degrees, counter-clockwise seen from above).
+    #[arg(long, default_value_t = 0.0)]
+    pub rotate: f32,
+    /// Consistency surfels per finetune iteration.
+    #[arg(long, default_value_t = 2048)]
+    pub rc_surfels: usize,
+    /// Traced rays per consistency surfel.
+    #[arg(long, default_value_t = 16)]
+    pub rc_rays: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// Settings of the finetune.
+#[derive(Clone, Copy, Debug)]
+pub struct FinetuneSettings {
+    pub iters: u32,
+    pub rc_surfels: usize,
+    pub rc_rays: usize,
+    pub samples: usize,
+    pub offset: f32,
+    pub lr_sh: f32,
+    pub seed: u64,
+}
+
+/// Load a map, rotate it and resample it to H × 2H (the split-sum and training size).
+pub fn prepare_env(path: &Path, rotate: f32, height: usize) -> crate::Result<EnvMap> {
+    let env = EnvMap::load(path)?;
+    let env = if rotate != 0.0 { env.rotated_about_up(rotate) } else { env };
+    Ok(env.resample(2 * height, height))
+}
+
+/// Visibility and split-sum indirect light under `env`, traced for every surfel.
+pub fn traced_cache(
+    surfels: &Surfels,
+    mats: &MaterialView,
+    env: &EnvMap,
+    samples: usize,
+    offset: f32,
+    seed: u64,
+) -> crate::Result<IncidentCache> {
+    let tracer = Tracer::build(surfels, &trace_settings());
+    let split = SplitSum::new(env)?;
+    let n = surfels.len();
+    // Each surfel's outgoing radiance along its normal, sRGB-free (linear), as a traced feature.
+    let feats: Vec<f32> = (0..n)
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            let o = split.shade(mats.albedo[i], mats.roughness[i], mats.normal[i], mats.normal[i]);
+            [0, 1, 2].map(|c| o.diffuse[c] + o.specular[c])
+        })
+        .collect();
+    let s = samples;
+    let mut cache = IncidentCache {
+        samples: s,
+        weight: 0.0,
+        dirs: vec![[0.0; 3]; n * s],
+        visibility: vec![0.0; n * s],
+        indirect: vec![[0.0; 3]; n * s],
+    };
+    if n == 0 {
+        return Ok(cache);
+    }
+    let mut rays = vec![Ray::default(); n * s];
+    let weights: Vec<f32> = cache
+        .dirs
+        .par_chunks_mut(s)
+        .zip(rays.par_chunks_mut(s))
+        .enumerate()
+        .map(|(i, (d, r))| surfel_rays(surfels, i, offset, rotation_for(seed, i), d, r))
+        .collect();
+    cache.weight = weights[0];
+    let mut out = vec![RayOutput::default(); n * s];
+    let mut of = vec![0.0f32; n * s * 3];
+    trace(&tracer, surfels, &rays, Some(Features { data: &feats, channels: 3 }), &mut out, Some(&mut of));
+    for k in 0..n * s {
+        cache.visibility[k] = out[k].transmittance;
+        cache.indirect[k] = [of[3 * k], of[3 * k + 1], of[3 * k + 2]];
+    }
+    Ok(cache)
+}
+
+/// What the finetune did.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct FinetuneReport {
+    pub iterations: u32,
+    pub seconds: f64,
+    pub first_loss: f32,
+    pub last_loss: f32,
+}
+
+/// Finetune the SH of `surfels` to the rendering equation under `env` (materials in `mats`).
+pub fn finetune(
+    surfels: &mut Surfels,
+    mats: &MaterialView,
+    env: &EnvMap,
+    cameras: &[Camera],
+    cfg: &FinetuneSettings,
+    show_progress: bool,
+) -> crate::Result<FinetuneReport> {
+    let started = Instant::now();
+    let n = surfels.len();
+    // Start: DC = the traced prediction along the normal (encoded like the SH images).
+    let cache = traced_cache(surfels, mats, env, cfg.samples, cfg.offset, cfg.seed)?;
+    let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
+    let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
+    shade_surfels(&inp, env, &mut direct, &mut indirect)?;
+    for i in 0..n {
+        let c = [0, 1, 2].map(|k| encode(direct[i][k] + indirect[i][k]));
+        surfels.sh[i] = [[0.0; 3]; crate::sh::SH_COEFFS];
+        surfels.sh[i][0] = c.map(crate::sh::rgb_to_dc);
+    }
+    let lr = LearningRates {
+        means: 0.0,
+        log_scales: 0.0,
+        quats: 0.0,
+        opacity_logits: 0.0,
+        sh_dc: cfg.lr_sh,
+        sh_rest: cfg.lr_sh / 5.0,
+        albedo_logits: 0.0,
+        roughness_logits: 0.0,
+    };
+    let mut adam = SurfelAdam::new(surfels, lr);
+    let tracer = Tracer::build(surfels, &trace_settings());
+    let rc = RcSettings {
+        surfels: cfg.rc_surfels,
+        rays: cfg.rc_rays,
+        offset: cfg.offset,
+        weight: 1.0,
+        detach: Detach { env: true, material: true, normal: true },
+        detach_lhs: false,
+        detach_rhs: true,
+    };
+    let mut scratch = RcScratch::default();
+    let mut mgrads = MaterialGrads::default();
+    mgrads.reset(n);
+    let mut v_env = vec![[0.0f32; 3]; env.texels.len()];
+    let mut v = surfels.zeros_like();
+    let bar = indicatif::ProgressBar::new(cfg.iters as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("relight {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    if !show_progress {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let mut report = FinetuneReport::default();
+    for it in 1..=cfg.iters {
+        if crate::train::interrupt::requested() {
+            break;
+        }
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(cfg.seed ^ (it as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        let eye = (!cameras.is_empty()).then(|| cameras[rng.random_range(0..cameras.len())].position().to_array());
+        v.fill_zero();
+        v.sh_degree = surfels.sh_degree;
+        let l = radiometric_consistency(
+            surfels,
+            mats,
+            &tracer,
+            env,
+            eye,
+            &mut rng,
+            &rc,
+            &mut scratch,
+            &mut v,
+            &mut mgrads,
+            &mut v_env,
+        );
+        adam.step(surfels, &v);
+        if it == 1 {
+            report.first_loss = l.total;
+        }
+        report.last_loss = l.total;
+        report.iterations = it;
+        if it % 20 == 0 {
+            bar.set_message(format!("consistency {:.4}", l.total));
+        }
+        bar.set_position(it as u64);
+    }
+    bar.finish_and_clear();
+    report.seconds = started.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// `radiogs relight`.
+pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
+    let run = &args.run;
+    if !run.join("envmap.exr").is_file() {
+        anyhow::bail!(
+            "{}: no envmap.exr, so no recovered materials; run `radiogs train --stage inverse` (or all) first",
+            run.display()
+        );
+    }
+    if !(args.rotate.is_finite()) {
+        anyhow::bail!("--rotate {}: must be a finite angle in degrees", args.rotate);
+    }
+    let cfg = crate::eval::load_run_config(run)?;
+    let mut surfels = crate::eval::load_run_surfels(run)?;
+    let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;
+    let extent = crate::pbr_scene::scene_extent(run);
+    let offset = cfg.ray_offset * extent;
+    let cameras: Vec<Camera> = match crate::io::dataset::Dataset::open(&cfg.data) {
+        Ok(d) => d.train.iter().map(|v| v.camera.clone()).collect(),
+        Err(_) => Vec::new(),
+    };
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    crate::train::interrupt::install();
+    let mut mats = MaterialView::default();
+    mats.update(&surfels);
+    let mut record = serde_json::json!({
+        "mode": args.mode, "envmap": args.envmap.display().to_string(), "rotate_deg": args.rotate,
+        "source_run": run.display().to_string(),
+    });
+    match args.mode {
+        RelightMode::Finetune => {
+            let settings = FinetuneSettings {
+                iters: args.iters,
+                rc_surfels: args.rc_surfels,
+                rc_rays: args.rc_rays,
+                samples: cfg.pbr_samples,
+                offset,
+                lr_sh: cfg.lr_sh,
+                seed: args.seed,
+            };
+            let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;
+            eprintln!(
+                "relight finetune: {} iterations in {:.1} s, consistency {:.4} → {:.4}",
+                report.iterations, report.seconds, report.first_loss, report.last_loss
+            );
+            record["finetune"] = serde_json::to_value(&report)?;
+        }
+        RelightMode::Traced => {}
+    }
+    crate::io::ply::write_ply(&args.out.join("point_cloud.ply"), &surfels)?;
+    env.save(&args.out.join("envmap.exr"))?;
+    cfg.save(&args.out.join("config.toml"))?;
+    crate::io::atomic::write_atomic(&args.out.join("relight.json"), serde_json::to_string_pretty(&record)?.as_bytes())?;
+    let how = match args.mode {
+        RelightMode::Finetune => "radiogs render --run",
+        RelightMode::Traced => "radiogs render --mode pbr --run",
+    };
+    eprintln!("relit scene → {}; look at it with `{how} {} --out DIR`", args.out.display(), args.out.display());
+    Ok(())
+}
+
+/// The relight mode recorded in a run folder, if it is a relit run.
+pub fn run_mode(run: &Path) -> Option<RelightMode> {
+    let text = std::fs::read_to_string(run.join("relight.json")).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    serde_json::from_value(v.get("mode")?.clone()).ok()
+}

@@ -305,3 +305,55 @@ pub fn run_mode(run: &Path) -> Option<RelightMode> {
     let v: serde_json::Value = serde_json::from_str(&text).ok()?;
     serde_json::from_value(v.get("mode")?.clone()).ok()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Furnace: a lone surfel under a constant env sees the whole sky (V = 1, no indirect
+    /// light), and its white-Lambert radiance is the env times the 10° floor's coverage.
+    #[test]
+    fn furnace_lone_surfel_under_constant_light() {
+        let mut s = Surfels::random_in_box(1, [0.0; 3], [0.0; 3], 2);
+        s.quats[0] = crate::surfels::quat_with_normal([0.3, -0.2, 0.9]);
+        let l = [1.3f32, 0.7, 2.0];
+        let env = EnvMap::constant(32, 16, l);
+        let mut mats = MaterialView::default();
+        mats.update(&s);
+        let cache = traced_cache(&s, &mats, &env, 64, 1e-3, 5).unwrap();
+        assert!(cache.visibility.iter().all(|&v| v == 1.0));
+        assert!(cache.indirect.iter().all(|c| *c == [0.0; 3]));
+        let shade = |a: f32| {
+            let albedo = [[a; 3]];
+            let inp = cache.inputs(&albedo, &mats.roughness, &mats.normal, &mats.normal);
+            let (mut d, mut i) = (vec![[0.0f32; 3]], vec![[0.0f32; 3]]);
+            shade_surfels(&inp, &env, &mut d, &mut i).unwrap();
+            d[0]
+        };
+        let (white, black) = (shade(1.0), shade(0.0));
+        let coverage = 1.0 - 10f32.to_radians().sin().powi(2);
+        for c in 0..3 {
+            let lambert = white[c] - black[c];
+            assert!((lambert - l[c] * coverage).abs() < 2e-3 * l[c], "{c}: {lambert} vs {}", l[c] * coverage);
+        }
+    }
+
+    #[test]
+    fn prepare_env_resamples_and_rotates() {
+        let dir = std::env::temp_dir().join(format!("radiogs-relight-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut env = EnvMap::constant(64, 32, [0.1; 3]);
+        // A bright spot at +x (u = 0.5).
+        env.texels[16 * 64 + 32] = [50.0; 3];
+        let path = dir.join("spot.exr");
+        env.save(&path).unwrap();
+        let e0 = prepare_env(&path, 0.0, 8).unwrap();
+        let e90 = prepare_env(&path, 90.0, 8).unwrap();
+        assert_eq!((e0.width, e0.height), (16, 8));
+        let bright = |e: &EnvMap, d: [f32; 3]| e.lookup(d)[0];
+        assert!(bright(&e0, [1.0, 0.0, 0.0]) > 2.0 * bright(&e0, [0.0, 1.0, 0.0]));
+        // Rotated by +90° (counter-clockwise seen from above): the spot moves from +x to +y.
+        assert!(bright(&e90, [0.0, 1.0, 0.0]) > 2.0 * bright(&e90, [1.0, 0.0, 0.0]));
+        assert!(EnvMap::load(&dir.join("missing.exr")).is_err());
+    }
+}

@@ -67,3 +67,22 @@ fn empty_ply_is_refused() {
     assert_eq!(code, 1);
     assert!(err.contains("empty.ply") && err.contains("no surfels"), "{err}");
 }
+
+#[test]
+fn relight_without_recovered_light_says_what_to_run() {
+    let dir = temp_dir("relight");
+    let run = dir.join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let (code, _, err) = radiogs(&[
+        "relight",
+        "--run",
+        run.to_str().unwrap(),
+        "--envmap",
+        "/nonexistent/sky.hdr",
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1);
+    assert!(err.contains("envmap.exr") && err.contains("--stage inverse") && !err.contains("panicked"), "{err}");
+    assert!(!dir.join("out").exists(), "nothing is written on bad input");
+}

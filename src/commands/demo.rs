@@ -20,9 +20,15 @@ pub struct DemoArgs {
     /// Image size of the synthesised views.
     #[arg(long, default_value_t = 128)]
     pub res: u32,
-    /// Training iterations.
+    /// Training iterations of the nvs (geometry) stage.
     #[arg(long, default_value_t = 3000)]
     pub iters: u32,
+    /// Iterations of the inverse-rendering stage.
+    #[arg(long, default_value_t = 500)]
+    pub inverse_iters: u32,
+    /// Finetune iterations per light when relighting.
+    #[arg(long, default_value_t = 200)]
+    pub relight_iters: u32,
     /// Random seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -58,16 +64,23 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             "48",
             "--test-views",
             "8",
+            "--relight-envs",
+            "studio,sunset",
             "--seed",
             &args.seed.to_string(),
         ])?
         .args;
-        eprintln!("[1/3] synthesising '{}' into {}", args.scene, data.display());
+        eprintln!("[1/4] synthesising '{}' into {}", args.scene, data.display());
         crate::synth::run(&synth)?;
     } else {
-        eprintln!("[1/3] using the dataset already in {}", data.display());
+        eprintln!("[1/4] using the dataset already in {}", data.display());
     }
-    eprintln!("[2/3] training (nvs stage, {} iterations) into {}", args.iters, run.display());
+    eprintln!(
+        "[2/4] training: nvs stage ({} iterations), then inverse rendering ({} iterations) into {}",
+        args.iters,
+        args.inverse_iters,
+        run.display()
+    );
     let cfg = {
         use clap::Parser;
         TrainWrapper::try_parse_from([
@@ -76,20 +89,33 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
             &data.to_string_lossy(),
             "--out",
             &run.to_string_lossy(),
+            "--stage",
+            "all",
             "--iters",
             &args.iters.to_string(),
+            "--inverse-iters",
+            &args.inverse_iters.to_string(),
             "--seed",
             &args.seed.to_string(),
         ])?
         .args
     };
     crate::train::run(&cfg)?;
-    eprintln!("[3/3] evaluating");
-    crate::eval::run(&crate::eval::EvalArgs { run: run.clone(), data: Some(data.clone()), json: None, limit: 0, no_relight: false, relight_iters: 300, relight_samples: 64 })?;
+    eprintln!("[3/4] evaluating, and relighting under the dataset's other lights (traced and finetuned)");
+    crate::eval::run(&crate::eval::EvalArgs {
+        run: run.clone(),
+        data: Some(data.clone()),
+        json: None,
+        limit: 0,
+        no_relight: false,
+        relight_iters: args.relight_iters,
+        relight_samples: 64,
+    })?;
+    eprintln!("[4/4] writing the report");
     let report = args.out.join("report.html");
     write_report(&report, &data, &run, started.elapsed().as_secs_f64())?;
     let overview = args.out.join("overview.png");
-    write_overview(&overview, &data, &run, 3)?;
+    write_overview(&overview, &data, &run, 2)?;
     println!("report: {} (picture: {})", report.display(), overview.display());
     Ok(())
 }
@@ -120,6 +146,18 @@ fn img_tag(path: &Path) -> String {
 }
 
 /// GT image composited over white as a PNG, for a fair side-by-side with our renders.
+fn wide_img_tag(path: &Path) -> String {
+    img_tag(path).replacen("<img ", "<img style=\"width:320px\" ", 1)
+}
+
+/// A GT indirect pass (linear EXR) as an sRGB PNG, as our indirect pictures are written.
+fn indirect_to_png(src: &Path, dst: &Path) -> anyhow::Result<()> {
+    let mut img = read_rgba(src)?;
+    img.map_channels(3, |v| crate::io::image::linear_to_srgb(v.clamp(0.0, 1.0)));
+    write_image(dst, &img)?;
+    Ok(())
+}
+
 fn gt_over_white(src: &Path, dst: &Path) -> anyhow::Result<()> {
     let img = read_rgba(src)?;
     let mut out = Image::new(img.width, img.height, 3);
@@ -140,24 +178,31 @@ pub fn write_overview(path: &Path, data: &Path, run: &Path, rows: usize) -> anyh
         .as_array()
         .map(|v| v.iter().filter_map(|m| m["view"].as_str().map(String::from)).take(rows).collect())
         .unwrap_or_default();
-    let mut tiles: Vec<Vec<Image>> = Vec::new();
+    let mut tiles: Vec<Vec<Option<Image>>> = Vec::new();
     for name in &names {
         let load = |p: PathBuf| -> Option<Image> { read_rgba(&p).ok() };
+        let light = metrics["relight"].as_array().and_then(|r| r.first()).and_then(|m| m["light"].as_str()).unwrap_or("");
         let row = [
             load(data.join(name).join("rgba.png")),
             load(run.join(format!("eval/{name}.png"))),
+            load(run.join(format!("eval/{name}_pbr.png"))),
             load(data.join(name).join("normal.png")),
             load(run.join(format!("eval/{name}_normal.png"))),
+            load(data.join(name).join("albedo.png")),
+            load(run.join(format!("eval/{name}_albedo.png"))),
+            load(data.join(name).join(format!("rgba_{light}.png"))),
+            load(run.join(format!("eval/{name}_relit_{light}_finetune.png"))),
         ];
-        tiles.push(row.into_iter().flatten().collect());
+        tiles.push(row.into_iter().collect());
     }
-    let (Some(first), true) = (tiles.first().and_then(|r| r.first()), !tiles.is_empty()) else { return Ok(()) };
+    let Some(first) = tiles.iter().flatten().flatten().next() else { return Ok(()) };
     let (tw, th) = (first.width, first.height);
     let cols = tiles.iter().map(|r| r.len()).max().unwrap_or(0) as u32;
     let mut out = Image::new(tw * cols, th * tiles.len() as u32, 3);
     out.data.fill(1.0);
     for (r, row) in tiles.iter().enumerate() {
         for (c, img) in row.iter().enumerate() {
+            let Some(img) = img else { continue };
             for y in 0..th.min(img.height) {
                 for x in 0..tw.min(img.width) {
                     let p = img.pixel(x, y);
@@ -266,7 +311,96 @@ pub fn write_report(path: &Path, data: &Path, run: &Path, seconds: f64) -> anyho
             );
         }
     }
-    html.push_str("<p>Not in this report yet: albedo, roughness, environment and relighting (the inverse-rendering stages are not built).</p>");
+    // Inverse rendering: light, materials, PBR, indirect light, relighting.
+    let inv_lines = std::fs::read_to_string(run.join("metrics_inverse.jsonl")).unwrap_or_default();
+    let inv_rows: Vec<serde_json::Value> = inv_lines.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+    if !inv_rows.is_empty() {
+        let inv_series = |key: &str| -> Vec<(f64, f64)> {
+            inv_rows.iter().filter_map(|r| Some((r["iteration"].as_f64()?, r[key].as_f64()?))).collect()
+        };
+        html.push_str("<h2>Inverse rendering</h2><div class=row>");
+        html.push_str(&svg_curve(&inv_series("psnr_pbr"), "train PBR PSNR (dB)"));
+        html.push_str(&svg_curve(&inv_series("rc_camera"), "radiometric consistency (camera dir)"));
+        html.push_str(&svg_curve(&inv_series("loss"), "inverse loss"));
+        html.push_str("</div>");
+    }
+    let env_ours = run.join("eval/envmap.png");
+    if env_ours.is_file() {
+        let _ = write!(
+            html,
+            "<h3>Environment light: ground truth | recovered (same exposure)</h3><div class=row>{}{}</div>",
+            wide_img_tag(&run.join("eval/envmap_gt.png")),
+            wide_img_tag(&env_ours)
+        );
+        html.push_str(
+            "<h3>Materials and light per view: GT | PBR render | GT albedo | our albedo (median-scaled) | \
+             GT roughness | ours | GT indirect | ours</h3>",
+        );
+        if let Some(views) = metrics["per_view"].as_array() {
+            for v in views.iter().take(4) {
+                let name = v["view"].as_str().unwrap_or("");
+                let e = |f: &str| img_tag(&run.join(format!("eval/{name}_{f}.png")));
+                let gt_ind = tmp.join(format!("{name}_indirect_gt.png"));
+                let gt_ind_tag = if indirect_to_png(&data.join(name).join("indirect.exr"), &gt_ind).is_ok() {
+                    img_tag(&gt_ind)
+                } else {
+                    String::new()
+                };
+                let _ = write!(
+                    html,
+                    "<div class=row>{}{}{}{}{}{}{}{}</div>",
+                    img_tag(&tmp.join(format!("{name}.png"))),
+                    e("pbr"),
+                    img_tag(&data.join(name).join("albedo.png")),
+                    e("albedo"),
+                    img_tag(&data.join(name).join("roughness.png")),
+                    e("roughness"),
+                    gt_ind_tag,
+                    e("indirect"),
+                );
+            }
+        }
+    }
+    if let Some(relit) = metrics.get("relight").and_then(|r| r.as_array()) {
+        html.push_str("<h2>Relighting: GT | ray-traced PBR | finetuned surfels</h2><table><tr><th>light</th><th>mode</th><th>PSNR</th><th>SSIM</th><th>setup s</th><th>ms/frame</th></tr>");
+        for m in relit {
+            let _ = write!(
+                html,
+                "<tr><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.4}</td><td>{:.1}</td><td>{:.1}</td></tr>",
+                m["light"].as_str().unwrap_or(""),
+                m["mode"].as_str().unwrap_or(""),
+                m["psnr"].as_f64().unwrap_or(f64::NAN),
+                m["ssim"].as_f64().unwrap_or(f64::NAN),
+                m["seconds"].as_f64().unwrap_or(f64::NAN),
+                m["frame_ms"].as_f64().unwrap_or(f64::NAN),
+            );
+        }
+        html.push_str("</table>");
+        let mut lights: Vec<&str> = relit.iter().filter_map(|m| m["light"].as_str()).collect();
+        lights.dedup();
+        if let Some(views) = metrics["per_view"].as_array() {
+            for light in lights {
+                for v in views.iter().take(2) {
+                    let name = v["view"].as_str().unwrap_or("");
+                    let gt_src = data.join(name).join(format!("rgba_{light}.png"));
+                    let gt_png = tmp.join(format!("{name}_{light}.png"));
+                    let gt = if gt_over_white(&gt_src, &gt_png).is_ok() { img_tag(&gt_png) } else { img_tag(&gt_src) };
+                    let _ = write!(
+                        html,
+                        "<div class=row>{gt}{}{}<span>{name} under {light}</span></div>",
+                        img_tag(&run.join(format!("eval/{name}_relit_{light}_traced.png"))),
+                        img_tag(&run.join(format!("eval/{name}_relit_{light}_finetune.png"))),
+                    );
+                }
+            }
+        }
+        if let Some(p) = metrics.get("relight_protocol").and_then(|p| p.as_str()) {
+            let _ = write!(html, "<p><small>{p}</small></p>");
+        }
+    }
+    if let Some(p) = metrics.get("pbr_protocol") {
+        let _ = write!(html, "<p><small>PBR protocol: {}</small></p>", p);
+    }
     crate::io::atomic::write_atomic(path, html.as_bytes())?;
     let _ = std::fs::remove_dir_all(&tmp);
     Ok(())

@@ -302,6 +302,7 @@ mod tests {
             width: None,
             height: None,
             mode: RenderMode::Surfel,
+            envmap: None,
         };
         run(&args).unwrap();
         let png = crate::io::image::read_rgba(&out.join("front.png")).unwrap();

@@ -175,6 +175,55 @@ impl EnvMap {
         out
     }
 
+    /// Solid-angle-weighted block average to (height / factor) × (width / factor): the light a
+    /// sample direction stands for when S directions cover the hemisphere (prefiltering the
+    /// env to the samples' footprint instead of point-sampling a sun). `factor` must divide
+    /// both sizes; 1 returns a copy.
+    pub fn box_downsample(&self, factor: usize) -> EnvMap {
+        let f = factor.max(1);
+        let (w, h) = (self.width / f, self.height / f);
+        let mut out = EnvMap::constant(w, h, [0.0; 3]);
+        for j in 0..h {
+            let wsum: f32 = (0..f).map(|dj| self.texel_solid_angle(j * f + dj)).sum::<f32>() * f as f32;
+            for i in 0..w {
+                let mut acc = [0.0f32; 3];
+                for dj in 0..f {
+                    let sa = self.texel_solid_angle(j * f + dj);
+                    for di in 0..f {
+                        let t = self.texels[(j * f + dj) * self.width + i * f + di];
+                        for c in 0..3 {
+                            acc[c] += sa * t[c];
+                        }
+                    }
+                }
+                out.texels[j * w + i] = acc.map(|v| v / wsum.max(1e-20));
+            }
+        }
+        out
+    }
+
+    /// Backward of [`box_downsample`](Self::box_downsample): adds ∂L/∂(full texels) for
+    /// ∂L/∂(small texels) `v_small` into `v_full`.
+    pub fn box_downsample_backward(&self, factor: usize, v_small: &[[f32; 3]], v_full: &mut [[f32; 3]]) {
+        let f = factor.max(1);
+        let (w, h) = (self.width / f, self.height / f);
+        for j in 0..h {
+            let wsum: f32 = (0..f).map(|dj| self.texel_solid_angle(j * f + dj)).sum::<f32>() * f as f32;
+            for i in 0..w {
+                let g = v_small[j * w + i];
+                for dj in 0..f {
+                    let k = self.texel_solid_angle(j * f + dj) / wsum.max(1e-20);
+                    for di in 0..f {
+                        let dst = &mut v_full[(j * f + dj) * self.width + i * f + di];
+                        for c in 0..3 {
+                            dst[c] += g[c] * k;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     /// A picture for people: each texel × `exposure`, sRGB-encoded and clipped (RGBA, α = 1).
     pub fn to_display_image(&self, exposure: f32) -> crate::io::image::Image {
         let mut img = crate::io::image::Image::new(self.width as u32, self.height as u32, 4);
@@ -208,6 +257,27 @@ impl EnvMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn box_downsample_keeps_the_mean_and_its_backward_is_the_transpose() {
+        let mut env = EnvMap::constant(16, 8, [0.0; 3]);
+        for (k, t) in env.texels.iter_mut().enumerate() {
+            *t = [(k % 7) as f32, (k % 3) as f32 + 0.5, 1.0];
+        }
+        let small = env.box_downsample(4);
+        assert_eq!((small.width, small.height), (4, 2));
+        let (a, b) = (env.mean_radiance(), small.mean_radiance());
+        for c in 0..3 {
+            assert!((a[c] - b[c]).abs() < 1e-4, "{a:?} vs {b:?}");
+        }
+        // <v_small, D x> = <Dᵀ v_small, x> for the linear map D.
+        let v_small: Vec<[f32; 3]> = (0..8).map(|k| [k as f32 * 0.3 - 1.0, 0.2, (k % 2) as f32]).collect();
+        let mut v_full = vec![[0.0f32; 3]; env.texels.len()];
+        env.box_downsample_backward(4, &v_small, &mut v_full);
+        let lhs: f32 = small.texels.iter().zip(&v_small).map(|(x, v)| x[0] * v[0] + x[1] * v[1] + x[2] * v[2]).sum();
+        let rhs: f32 = env.texels.iter().zip(&v_full).map(|(x, v)| x[0] * v[0] + x[1] * v[1] + x[2] * v[2]).sum();
+        assert!((lhs - rhs).abs() < 1e-3 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+    }
 
     #[test]
     fn blender_convention_axes() {

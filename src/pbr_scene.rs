@@ -21,6 +21,9 @@ pub struct PbrScene {
     pub cache: IncidentCache,
     pub mats: MaterialView,
     pub window: usize,
+    /// The env is box-filtered by this factor for the rendering equation's samples
+    /// (`env_sample_height` of the training config).
+    pub sample_factor: usize,
 }
 
 /// Straight-alpha pictures of one view (colours over `bg` where they are composited).
@@ -44,13 +47,21 @@ pub struct PbrImages {
 
 impl PbrScene {
     /// A scene from its parts; traces the incident cache (S samples, ray offset in scene units).
-    pub fn new(surfels: Surfels, env: EnvMap, samples: usize, offset: f32, window: usize, seed: u64) -> PbrScene {
+    pub fn new(
+        surfels: Surfels,
+        env: EnvMap,
+        samples: usize,
+        offset: f32,
+        window: usize,
+        sample_factor: usize,
+        seed: u64,
+    ) -> PbrScene {
         let tracer = Tracer::build(&surfels, &trace_settings());
         let mut cache = IncidentCache::default();
         cache.refresh(&tracer, &surfels, samples, offset, seed);
         let mut mats = MaterialView::default();
         mats.update(&surfels);
-        PbrScene { surfels, env, cache, mats, window }
+        PbrScene { surfels, env, cache, mats, window, sample_factor }
     }
 
     /// The scene of a run after the inverse stage (`point_cloud.ply` + `envmap.exr`), or None
@@ -69,15 +80,18 @@ impl PbrScene {
             let mut mats = MaterialView::default();
             mats.update(&surfels);
             let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, offset, cfg.seed)?;
-            return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window }));
+            let sample_factor = crate::train::inverse::sample_factor(&cfg);
+            return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window, sample_factor }));
         }
-        Ok(Some(PbrScene::new(surfels, env, cfg.pbr_samples, offset, cfg.window, cfg.seed)))
+        let factor = crate::train::inverse::sample_factor(&cfg);
+        Ok(Some(PbrScene::new(surfels, env, cfg.pbr_samples, offset, cfg.window, factor, cfg.seed)))
     }
 
     /// Render one view over the background `bg` (sRGB).
     pub fn render(&self, cam: &Camera, bg: [f32; 3]) -> PbrImages {
         let mut shading = SurfelShading::default();
-        shading.compute(&self.surfels, &self.mats, &self.cache, &self.env, cam, VIEW_CHANNELS);
+        let env = self.env.box_downsample(self.sample_factor);
+        shading.compute(&self.surfels, &self.mats, &self.cache, &env, cam, VIEW_CHANNELS);
         self.render_features(cam, bg, &shading.features)
     }
 

@@ -76,6 +76,8 @@ pub struct FinetuneSettings {
     pub samples: usize,
     pub offset: f32,
     pub lr_sh: f32,
+    /// Box filter of the env for the rendering equation's samples (as in training).
+    pub sample_factor: usize,
     pub seed: u64,
 }
 
@@ -156,8 +158,11 @@ pub fn finetune(
 ) -> crate::Result<FinetuneReport> {
     let started = Instant::now();
     let n = surfels.len();
+    let split_env = env;
+    let env_s = env.box_downsample(cfg.sample_factor);
+    let env = &env_s;
     // Start: DC = the traced prediction along the normal (encoded like the SH images).
-    let cache = traced_cache(surfels, mats, env, cfg.samples, cfg.offset, cfg.seed)?;
+    let cache = traced_cache(surfels, mats, split_env, cfg.samples, cfg.offset, cfg.seed)?;
     let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
     let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
     shade_surfels(&inp, env, &mut direct, &mut indirect)?;
@@ -276,6 +281,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 samples: cfg.pbr_samples,
                 offset,
                 lr_sh: cfg.lr_sh,
+                sample_factor: crate::train::inverse::sample_factor(&cfg),
                 seed: args.seed,
             };
             let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;

@@ -291,6 +291,7 @@ fn eval_relight(
                     cache,
                     mats: mats.clone(),
                     window: cfg.window,
+                    sample_factor: crate::train::inverse::sample_factor(cfg),
                 });
             } else {
                 let settings = FinetuneSettings {
@@ -300,6 +301,7 @@ fn eval_relight(
                     samples: args.relight_samples,
                     offset,
                     lr_sh: cfg.lr_sh,
+                    sample_factor: crate::train::inverse::sample_factor(cfg),
                     seed: cfg.seed,
                 };
                 finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;

@@ -203,6 +203,16 @@ pub struct TrainConfig {
     pub roughness_init: f32,
     #[arg(long, default_value_t = 1.5)]
     pub env_init: f32,
+    /// The rendering equation's S samples read the env box-filtered to this height (width 2×):
+    /// each sample stands for a patch of the sky of about that size, so a small bright source
+    /// (a sun) lights every surfel a little instead of a few surfels a lot. 0 = point samples
+    /// of the full map (the published lookup; very noisy with CPU sample counts).
+    #[arg(long, default_value_t = 8)]
+    pub env_sample_height: usize,
+    /// Start the env from this map (.hdr/.exr) instead of a constant: "known light" runs, and
+    /// with `--lr-env 0` a light held fixed (diagnostics, ablations).
+    #[arg(long)]
+    pub env_init_map: Option<PathBuf>,
     /// Traced rays leave a surfel from μ + offset·n, offset = this × the scene extent.
     #[arg(long, default_value_t = 0.002)]
     pub ray_offset: f32,
@@ -322,6 +332,14 @@ impl TrainConfig {
         }
         if !(self.env_init.is_finite() && self.env_init > 0.0) {
             return bad("env_init", format!("{} must be > 0", self.env_init));
+        }
+        if self.env_sample_height != 0
+            && (self.env_sample_height > self.env_height || self.env_height % self.env_sample_height != 0)
+        {
+            return bad(
+                "env_sample_height",
+                format!("{} must divide env_height {} (or be 0)", self.env_sample_height, self.env_height),
+            );
         }
         if self.cache_every == 0 {
             return bad("cache_every", "must be at least 1".into());

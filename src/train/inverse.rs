@@ -52,6 +52,11 @@ pub fn checkpoint_path(run: &Path) -> PathBuf {
     run.join("checkpoint_inverse.bin")
 }
 
+/// How much the env is box-filtered for the rendering equation's samples.
+pub fn sample_factor(cfg: &TrainConfig) -> usize {
+    if cfg.env_sample_height == 0 { 1 } else { (cfg.env_height / cfg.env_sample_height).max(1) }
+}
+
 /// The tracer settings of the PBR stages (RadioGS: stop at T < 0.03, cull back faces).
 pub fn trace_settings() -> TraceSettings {
     TraceSettings::default()
@@ -100,7 +105,7 @@ impl InverseState {
     }
 
     /// Fresh materials and light on the nvs result.
-    pub fn from_nvs(cfg: &TrainConfig, mut surfels: Surfels, cameras: &[Camera], extent: f32) -> InverseState {
+    pub fn from_nvs(cfg: &TrainConfig, mut surfels: Surfels, cameras: &[Camera], extent: f32) -> crate::Result<InverseState> {
         let n0 = surfels.len();
         let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
         tracing::info!(
@@ -113,10 +118,18 @@ impl InverseState {
         surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
         surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
         let h = cfg.env_height;
-        let env_log = vec![cfg.env_init.ln(); h * 2 * h * 3];
+        let env_log = match &cfg.env_init_map {
+            Some(path) => EnvMap::load(path)?
+                .resample(2 * h, h)
+                .texels
+                .iter()
+                .flat_map(|t| t.map(|v| v.max(1e-4).ln()))
+                .collect(),
+            None => vec![cfg.env_init.ln(); h * 2 * h * 3],
+        };
         let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
         adam.lr.means = position_lr(cfg, extent);
-        InverseState {
+        Ok(InverseState {
             env_adam: Adam::new(env_log.len(), cfg.lr_env),
             env_log,
             env_height: h,
@@ -125,7 +138,7 @@ impl InverseState {
             cache: IncidentCache::default(),
             iteration: 0,
             extent,
-        }
+        })
     }
 
     pub fn to_checkpoint(&self, cfg: &TrainConfig) -> Checkpoint {
@@ -317,6 +330,7 @@ struct Scratch {
     mats: MaterialView,
     mgrads: MaterialGrads,
     v_env: Vec<[f32; 3]>,
+    v_env_small: Vec<[f32; 3]>,
     v_env_log: Vec<f32>,
     rc: RcScratch,
 }
@@ -338,6 +352,7 @@ fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
 fn iterate(
     cfg: &TrainConfig,
     state: &InverseState,
+    env_full: &EnvMap,
     env: &EnvMap,
     tracer: &Tracer,
     images: &TrainImages,
@@ -515,8 +530,9 @@ fn iterate(
         }
         sc.mgrads.v_roughness[i] += f[6];
     }
-    sc.v_env.clear();
-    sc.v_env.extend_from_slice(&sc.sub.v_env);
+    // The env gradient of the (box-filtered) sampled env, kept small until the end.
+    sc.v_env_small.clear();
+    sc.v_env_small.extend_from_slice(&sc.sub.v_env);
     let t5 = Instant::now();
     t.shading_backward += (t5 - t4).as_secs_f64();
 
@@ -534,14 +550,18 @@ fn iterate(
             &mut sc.rc,
             v_surfels,
             &mut sc.mgrads,
-            &mut sc.v_env,
+            &mut sc.v_env_small,
         );
         l.total += l.rc.total;
     }
     t.consistency += t5.elapsed().as_secs_f64();
     sc.mgrads.chain_into(s, v_surfels);
 
+    sc.v_env.clear();
+    sc.v_env.resize(env_full.texels.len(), [0.0; 3]);
+    env_full.box_downsample_backward(sample_factor(cfg), &sc.v_env_small, &mut sc.v_env);
     // Env priors on the linear texels, then the exp activation.
+    let env = env_full;
     let hh = state.env_height;
     if cfg.lambda_white_light > 0.0 {
         l.env_prior += cfg.lambda_white_light * loss::white_light_prior(&env.texels, cfg.lambda_white_light, &mut sc.v_env);
@@ -591,7 +611,7 @@ pub fn run_until(
         let mut surfels = c.get_surfels(&nvs_path, "params")?;
         surfels.sh_degree = 3;
         let (_, extent) = dataset.camera_extent();
-        InverseState::from_nvs(cfg, surfels, &images.cameras, extent)
+        InverseState::from_nvs(cfg, surfels, &images.cameras, extent)?
     };
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
@@ -629,7 +649,8 @@ pub fn run_until(
         v_surfels.fill_zero();
         v_surfels.sh_degree = state.surfels.sh_degree;
         let env = state.env();
-        last = iterate(cfg, &state, &env, &tracer, &images, view, bg, &mut rng, &mut sc, &mut v_surfels, &mut times);
+        let env_s = env.box_downsample(sample_factor(cfg));
+        last = iterate(cfg, &state, &env, &env_s, &tracer, &images, view, bg, &mut rng, &mut sc, &mut v_surfels, &mut times);
         if !last.total.is_finite() {
             anyhow::bail!("inverse iteration {it}: the loss is {} (diverged); lower the learning rates", last.total);
         }

@@ -1,6 +1,7 @@
 //! `radiogs bench`: speed and memory figures for BENCHMARKS.md.
 
 pub mod raster;
+pub mod relight;
 pub mod trace;
 pub mod train;
 
@@ -13,6 +14,8 @@ pub enum BenchCommand {
     Trace,
     /// Training iterations per second and the time split.
     Train(train::TrainBenchArgs),
+    /// Relit rendering: rasterised frames per second, ray-traced PBR frame time.
+    Relight(relight::RelightBenchArgs),
 }
 
 pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
@@ -20,5 +23,6 @@ pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Raster(args) => raster::run(args),
         BenchCommand::Trace => trace::run(),
         BenchCommand::Train(args) => train::run(args),
+        BenchCommand::Relight(args) => relight::run(args),
     }
 }

@@ -9,10 +9,10 @@ use crate::envmap::EnvMap;
 use crate::raster::{self, Features, Outputs, RasterSettings};
 use crate::shade::incident::IncidentCache;
 use crate::surfels::Surfels;
+use crate::trace::Tracer;
 use crate::train::consistency::encode;
 use crate::train::inverse::{SurfelShading, VIEW_CHANNELS, trace_settings};
 use crate::train::material::MaterialView;
-use crate::trace::Tracer;
 use std::path::Path;
 
 pub struct PbrScene {

@@ -58,7 +58,9 @@ fn make_dataset(dir: &Path) -> Surfels {
             px[3] = a;
         }
         write_image(&dir.join(format!("train/r_{k}.png")), &out).unwrap();
-        frames.push(serde_json::json!({"file_path": format!("./train/r_{k}"), "transform_matrix": cam.to_blender_rows()}));
+        frames.push(
+            serde_json::json!({"file_path": format!("./train/r_{k}"), "transform_matrix": cam.to_blender_rows()}),
+        );
     }
     let json = serde_json::json!({"camera_angle_x": angle, "frames": frames});
     std::fs::write(dir.join("transforms_train.json"), json.to_string()).unwrap();
@@ -138,7 +140,9 @@ fn lambert_plane_albedo_converges_under_known_light() {
     assert!(pbr_psnr > 25.0, "PBR PSNR {pbr_psnr}");
     let env_file = data.join("warm.exr");
     EnvMap::constant(32, 16, [1.5, 1.0, 0.5]).save(&env_file).unwrap();
-    for (mode, name) in [(radiogs::relight::RelightMode::Traced, "traced"), (radiogs::relight::RelightMode::Finetune, "ft")] {
+    for (mode, name) in
+        [(radiogs::relight::RelightMode::Traced, "traced"), (radiogs::relight::RelightMode::Finetune, "ft")]
+    {
         let out = temp_dir(name);
         radiogs::relight::run(&radiogs::relight::RelightArgs {
             run: run.clone(),

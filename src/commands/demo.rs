@@ -181,7 +181,8 @@ pub fn write_overview(path: &Path, data: &Path, run: &Path, rows: usize) -> anyh
     let mut tiles: Vec<Vec<Option<Image>>> = Vec::new();
     for name in &names {
         let load = |p: PathBuf| -> Option<Image> { read_rgba(&p).ok() };
-        let light = metrics["relight"].as_array().and_then(|r| r.first()).and_then(|m| m["light"].as_str()).unwrap_or("");
+        let light =
+            metrics["relight"].as_array().and_then(|r| r.first()).and_then(|m| m["light"].as_str()).unwrap_or("");
         let row = [
             load(data.join(name).join("rgba.png")),
             load(run.join(format!("eval/{name}.png"))),

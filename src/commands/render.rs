@@ -246,7 +246,13 @@ fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> an
         bar.inc(1);
     }
     bar.finish_and_clear();
-    println!("rendered {} views ({:?}) of {} surfels to {}", views.len(), args.mode, scene.surfels.len(), args.out.display());
+    println!(
+        "rendered {} views ({:?}) of {} surfels to {}",
+        views.len(),
+        args.mode,
+        scene.surfels.len(),
+        args.out.display()
+    );
     Ok(())
 }
 

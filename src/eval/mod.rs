@@ -126,7 +126,11 @@ pub fn median_scale(pairs: &[(Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<f32>)]) -> [f32;
         let mut r: Vec<f32> = pairs
             .iter()
             .flat_map(|(pred, gt, mask)| {
-                pred.iter().zip(gt).zip(mask).filter(|((p, _), m)| **m > 0.5 && p[ch] > 1e-4).map(move |((p, g), _)| g[ch] / p[ch])
+                pred.iter()
+                    .zip(gt)
+                    .zip(mask)
+                    .filter(|((p, _), m)| **m > 0.5 && p[ch] > 1e-4)
+                    .map(move |((p, g), _)| g[ch] / p[ch])
             })
             .collect();
         if r.is_empty() {
@@ -195,7 +199,10 @@ fn eval_pbr(
             let scaled: Vec<[f32; 3]> = pred.iter().map(|p| [0, 1, 2].map(|k| p[k] * scale[k])).collect();
             m.albedo_psnr = Some(psnr_masked(&scaled, g, mask));
             let on_black = |v: &[[f32; 3]]| -> Vec<[f32; 3]> {
-                v.iter().zip(mask).map(|(c, &a)| if a > 0.5 { c.map(|x| x.clamp(0.0, 1.0)) } else { [0.0; 3] }).collect()
+                v.iter()
+                    .zip(mask)
+                    .map(|(c, &a)| if a > 0.5 { c.map(|x| x.clamp(0.0, 1.0)) } else { [0.0; 3] })
+                    .collect()
             };
             m.albedo_ssim = Some(ssim_eval(&on_black(&scaled), &on_black(g), w, h)?);
             write_image(
@@ -224,7 +231,10 @@ fn eval_pbr(
             )?;
         }
         let rough: Vec<[f32; 3]> = img.roughness.iter().map(|&r| [r; 3]).collect();
-        write_image(&out_dir.join(format!("{}_roughness.png", cam.name)), &to_image(&rough, Some(&img.alpha), cam.width, cam.height))?;
+        write_image(
+            &out_dir.join(format!("{}_roughness.png", cam.name)),
+            &to_image(&rough, Some(&img.alpha), cam.width, cam.height),
+        )?;
         write_image(&out_dir.join(format!("{}_pbr.png", cam.name)), &to_image(&img.pbr, None, cam.width, cam.height))?;
         metrics.push(m);
     }
@@ -494,8 +504,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             for mode in ["traced", "finetune"] {
                 let v: Vec<&RelightMetrics> = relit.iter().filter(|m| m.mode == mode).collect();
                 let k = v.len().max(1) as f32;
-                mean.insert(format!("relight_{mode}_psnr"), serde_json::json!(v.iter().map(|m| m.psnr).sum::<f32>() / k));
-                mean.insert(format!("relight_{mode}_ssim"), serde_json::json!(v.iter().map(|m| m.ssim).sum::<f32>() / k));
+                mean.insert(
+                    format!("relight_{mode}_psnr"),
+                    serde_json::json!(v.iter().map(|m| m.psnr).sum::<f32>() / k),
+                );
+                mean.insert(
+                    format!("relight_{mode}_ssim"),
+                    serde_json::json!(v.iter().map(|m| m.ssim).sum::<f32>() / k),
+                );
             }
             extra.insert("relight".into(), serde_json::to_value(relit)?);
             extra.insert("relight_protocol".into(), serde_json::json!(format!(

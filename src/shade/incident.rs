@@ -56,7 +56,14 @@ pub fn rotation_for(seed: u64, i: usize) -> f64 {
 
 /// Writes the S rays of surfel `i` (origin μ + offset·n, Fibonacci directions rotated by
 /// `rotation`) and returns the per-sample solid angle.
-pub fn surfel_rays(surfels: &Surfels, i: usize, offset: f32, rotation: f64, dirs: &mut [[f32; 3]], rays: &mut [Ray]) -> f32 {
+pub fn surfel_rays(
+    surfels: &Surfels,
+    i: usize,
+    offset: f32,
+    rotation: f64,
+    dirs: &mut [[f32; 3]],
+    rays: &mut [Ray],
+) -> f32 {
     let n = surfels.normal(i);
     let m = surfels.means[i];
     let w = fibonacci_hemisphere(n, rotation, MIN_ELEVATION_DEG, ElevationFloor::Spread, dirs);
@@ -160,7 +167,11 @@ mod tests {
         for c in [0.01f32, 0.2, 0.5, 0.9, 1.3] {
             let h = 1e-3;
             let fd = (decode(c + h) - decode(c - h)) / (2.0 * h);
-            assert!((fd - decode_derivative(c)).abs() < 2e-3 * (1.0 + fd.abs()), "{c}: {fd} vs {}", decode_derivative(c));
+            assert!(
+                (fd - decode_derivative(c)).abs() < 2e-3 * (1.0 + fd.abs()),
+                "{c}: {fd} vs {}",
+                decode_derivative(c)
+            );
         }
     }
 

@@ -333,11 +333,13 @@ pub fn shade_subset(
     if direct.len() != ids.len() || indirect.len() != ids.len() {
         return Err(Error::invalid("PBR outputs", format!("need {} entries", ids.len())));
     }
-    direct.par_iter_mut().zip(indirect.par_iter_mut()).zip(ids.par_iter()).with_min_len(64).for_each(|((d, ind), &i)| {
-        let (a, b) = shade_one(inp, env, i as usize);
-        *d = to32(a);
-        *ind = to32(b);
-    });
+    direct.par_iter_mut().zip(indirect.par_iter_mut()).zip(ids.par_iter()).with_min_len(64).for_each(
+        |((d, ind), &i)| {
+            let (a, b) = shade_one(inp, env, i as usize);
+            *d = to32(a);
+            *ind = to32(b);
+        },
+    );
     Ok(())
 }
 

@@ -234,15 +234,13 @@ pub fn radiometric_consistency(
             }
         }
     }
-    let losses = RcLosses {
-        camera: sums[0] as f32,
-        random: sums[1] as f32,
-        total: cfg.weight * (sums[0] + sums[1]) as f32,
-    };
+    let losses =
+        RcLosses { camera: sums[0] as f32, random: sums[1] as f32, total: cfg.weight * (sums[0] + sums[1]) as f32 };
     if cfg.detach_rhs {
         return losses;
     }
-    if sc.grads.v_albedo.len() != m || sc.grads.v_visibility.len() != m * r || sc.grads.v_env.len() != env.texels.len() {
+    if sc.grads.v_albedo.len() != m || sc.grads.v_visibility.len() != m * r || sc.grads.v_env.len() != env.texels.len()
+    {
         sc.grads = PbrGrads::new(m, r, env.texels.len());
     }
     shade_surfels_backward(&inp, env, &v_pbr, &v_pbr, cfg.detach, &mut sc.grads).expect("consistency: sized above");
@@ -276,7 +274,8 @@ pub fn radiometric_consistency(
         for j in 0..r {
             let (e0, e1) = ((2 * k) * r + j, (2 * k + 1) * r + j);
             let rad = sc.out[k * r + j].radiance;
-            let v_ind: [f32; 3] = std::array::from_fn(|ch| (g.v_indirect[e0][ch] + g.v_indirect[e1][ch]) * decode_derivative(rad[ch]));
+            let v_ind: [f32; 3] =
+                std::array::from_fn(|ch| (g.v_indirect[e0][ch] + g.v_indirect[e1][ch]) * decode_derivative(rad[ch]));
             sc.ray_grads[k * r + j] = RayGrad {
                 v_radiance: v_ind,
                 v_transmittance: g.v_visibility[e0] + g.v_visibility[e1],
@@ -315,7 +314,8 @@ mod tests {
         let mut rg = rand_pcg::Pcg64::seed_from_u64(3);
         for c in s.sh.iter_mut() {
             for k in 0..4 {
-                *c.get_mut(k).unwrap() = [rg.random_range(-0.3..0.3), rg.random_range(-0.3..0.3), rg.random_range(-0.3..0.3)];
+                *c.get_mut(k).unwrap() =
+                    [rg.random_range(-0.3..0.3), rg.random_range(-0.3..0.3), rg.random_range(-0.3..0.3)];
             }
         }
         s.sh_degree = 1;
@@ -458,8 +458,11 @@ mod tests {
         };
         let (_, v, mats, v_env) = loss_and_grads(&s, &env, &base);
         assert!(mats.v_albedo.iter().any(|a| a[0] != 0.0) && v_env.iter().any(|t| t[0] != 0.0));
-        let (_, _, m2, e2) =
-            loss_and_grads(&s, &env, &RcSettings { detach: Detach { env: true, material: true, normal: true }, ..base });
+        let (_, _, m2, e2) = loss_and_grads(
+            &s,
+            &env,
+            &RcSettings { detach: Detach { env: true, material: true, normal: true }, ..base },
+        );
         assert!(m2.v_albedo.iter().all(|a| *a == [0.0; 3]) && m2.v_normal.iter().all(|a| *a == [0.0; 3]));
         assert!(e2.iter().all(|t| *t == [0.0; 3]));
         let (_, v3, m3, _) = loss_and_grads(&s, &env, &RcSettings { detach_rhs: true, ..base });

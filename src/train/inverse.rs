@@ -20,7 +20,9 @@
 
 use super::consistency::{RcLosses, RcScratch, RcSettings, encode, encode_derivative, radiometric_consistency};
 use super::material::{MaterialGrads, MaterialView, orient_surfels, view_dir, view_dir_backward};
-use super::nvs::{self, StageSummary, TimeSplit, TrainImages, iteration_rng, open_metrics, progress_bar, view_for_iteration};
+use super::nvs::{
+    self, StageSummary, TimeSplit, TrainImages, iteration_rng, open_metrics, progress_bar, view_for_iteration,
+};
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::error::Error;
@@ -105,7 +107,12 @@ impl InverseState {
     }
 
     /// Fresh materials and light on the nvs result.
-    pub fn from_nvs(cfg: &TrainConfig, mut surfels: Surfels, cameras: &[Camera], extent: f32) -> crate::Result<InverseState> {
+    pub fn from_nvs(
+        cfg: &TrainConfig,
+        mut surfels: Surfels,
+        cameras: &[Camera],
+        extent: f32,
+    ) -> crate::Result<InverseState> {
         let n0 = surfels.len();
         let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
         tracing::info!(
@@ -119,12 +126,9 @@ impl InverseState {
         surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
         let h = cfg.env_height;
         let env_log = match &cfg.env_init_map {
-            Some(path) => EnvMap::load(path)?
-                .resample(2 * h, h)
-                .texels
-                .iter()
-                .flat_map(|t| t.map(|v| v.max(1e-4).ln()))
-                .collect(),
+            Some(path) => {
+                EnvMap::load(path)?.resample(2 * h, h).texels.iter().flat_map(|t| t.map(|v| v.max(1e-4).ln())).collect()
+            }
             None => vec![cfg.env_init.ln(); h * 2 * h * 3],
         };
         let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
@@ -171,7 +175,10 @@ impl InverseState {
 
     pub fn from_checkpoint(path: &Path, c: &Checkpoint, cfg: &TrainConfig) -> crate::Result<InverseState> {
         let meta_u64 = |key: &str| {
-            c.meta.get(key).and_then(|v| v.as_u64()).ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
+            c.meta
+                .get(key)
+                .and_then(|v| v.as_u64())
+                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
         };
         let surfels = c.get_surfels(path, "params")?;
         let extent = c.meta.get("extent").and_then(|v| v.as_f64()).unwrap_or(1.0) as f32;
@@ -482,7 +489,8 @@ fn iterate(
     if cfg.lambda_smooth_normal > 0.0 {
         sc.v_map.clear();
         sc.v_map.resize(np * 3, 0.0);
-        let v = sc.smooth.loss_prepared(out.normal.as_flattened(), 3, Some(alpha), cfg.lambda_smooth_normal, &mut sc.v_map);
+        let v =
+            sc.smooth.loss_prepared(out.normal.as_flattened(), 3, Some(alpha), cfg.lambda_smooth_normal, &mut sc.v_map);
         l.smooth += cfg.lambda_smooth_normal * v;
         for (d, s) in g.v_normal.as_flattened_mut().iter_mut().zip(&sc.v_map) {
             *d += s;
@@ -564,7 +572,8 @@ fn iterate(
     let env = env_full;
     let hh = state.env_height;
     if cfg.lambda_white_light > 0.0 {
-        l.env_prior += cfg.lambda_white_light * loss::white_light_prior(&env.texels, cfg.lambda_white_light, &mut sc.v_env);
+        l.env_prior +=
+            cfg.lambda_white_light * loss::white_light_prior(&env.texels, cfg.lambda_white_light, &mut sc.v_env);
     }
     if cfg.lambda_env_tv > 0.0 {
         l.env_prior += cfg.lambda_env_tv * loss::env_tv(&env.texels, 2 * hh, hh, cfg.lambda_env_tv, &mut sc.v_env);
@@ -650,7 +659,20 @@ pub fn run_until(
         v_surfels.sh_degree = state.surfels.sh_degree;
         let env = state.env();
         let env_s = env.box_downsample(sample_factor(cfg));
-        last = iterate(cfg, &state, &env, &env_s, &tracer, &images, view, bg, &mut rng, &mut sc, &mut v_surfels, &mut times);
+        last = iterate(
+            cfg,
+            &state,
+            &env,
+            &env_s,
+            &tracer,
+            &images,
+            view,
+            bg,
+            &mut rng,
+            &mut sc,
+            &mut v_surfels,
+            &mut times,
+        );
         if !last.total.is_finite() {
             anyhow::bail!("inverse iteration {it}: the loss is {} (diverged); lower the learning rates", last.total);
         }
@@ -726,7 +748,11 @@ pub fn run_until(
             losses: times.losses,
             densify: 0.0,
             optimiser: times.optimiser,
-            other: times.shading + times.shading_backward + times.consistency + times.tracer_refit + times.cache_refresh,
+            other: times.shading
+                + times.shading_backward
+                + times.consistency
+                + times.tracer_refit
+                + times.cache_refresh,
         },
         interrupted,
     })

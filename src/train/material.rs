@@ -19,13 +19,16 @@ impl MaterialView {
         self.albedo.resize(n, [0.0; 3]);
         self.roughness.resize(n, 0.0);
         self.normal.resize(n, [0.0; 3]);
-        self.albedo.par_iter_mut().zip(self.roughness.par_iter_mut()).zip(self.normal.par_iter_mut()).enumerate().for_each(
-            |(i, ((a, r), nn))| {
+        self.albedo
+            .par_iter_mut()
+            .zip(self.roughness.par_iter_mut())
+            .zip(self.normal.par_iter_mut())
+            .enumerate()
+            .for_each(|(i, ((a, r), nn))| {
                 *a = s.albedo(i);
                 *r = s.roughness(i);
                 *nn = s.normal(i);
-            },
-        );
+            });
     }
 }
 
@@ -118,7 +121,12 @@ pub struct Orientation {
 /// from both sides (at least 2 cameras and 20% of the votes each) get a flipped twin at the
 /// same place, so every view still sees one of the two; unseen surfels face away from the
 /// centroid of the scene.
-pub fn orient_surfels(s: &mut Surfels, cameras: &[crate::camera::Camera], window: usize, tolerance: f32) -> Orientation {
+pub fn orient_surfels(
+    s: &mut Surfels,
+    cameras: &[crate::camera::Camera],
+    window: usize,
+    tolerance: f32,
+) -> Orientation {
     use crate::raster::{self, Outputs, RasterSettings};
     let n = s.len();
     let mut pos = vec![0u32; n];
@@ -218,13 +226,29 @@ mod tests {
         for a in 0..10 {
             for b in 0..10 {
                 let q = if (a + b) % 2 == 0 { wall_q } else { [-wall_q[1], wall_q[0], 0.0, 0.0] };
-                s.push([-0.45 + 0.1 * a as f32, 0.0, -0.45 + 0.1 * b as f32], [0.08, 0.08], q, 0.95, [0.5; 3], [0.5; 3], 0.5);
+                s.push(
+                    [-0.45 + 0.1 * a as f32, 0.0, -0.45 + 0.1 * b as f32],
+                    [0.08, 0.08],
+                    q,
+                    0.95,
+                    [0.5; 3],
+                    [0.5; 3],
+                    0.5,
+                );
             }
         }
         let floor_down = [0.0, 1.0, 0.0, 0.0]; // n = −z
         for a in 0..10 {
             for b in 0..10 {
-                s.push([-0.45 + 0.1 * a as f32, 1.0 + 0.1 * b as f32, -1.0], [0.08, 0.08], floor_down, 0.95, [0.5; 3], [0.5; 3], 0.5);
+                s.push(
+                    [-0.45 + 0.1 * a as f32, 1.0 + 0.1 * b as f32, -1.0],
+                    [0.08, 0.08],
+                    floor_down,
+                    0.95,
+                    [0.5; 3],
+                    [0.5; 3],
+                    0.5,
+                );
             }
         }
         assert!(s.normal(0)[1] > 0.99 && s.normal(1)[1] < -0.99 && s.normal(100)[2] < -0.99);

@@ -1,7 +1,7 @@
 //! Training: configuration, stages, density control, checkpoints.
 pub mod checkpoint;
-pub mod consistency;
 pub mod config;
+pub mod consistency;
 pub mod densify;
 pub mod init;
 pub mod interrupt;
@@ -40,7 +40,8 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
         let text = serde_json::to_string_pretty(&summaries)?;
         crate::io::atomic::write_atomic(&cfg.out.join("train_summary.json"), text.as_bytes())?;
         if summary.interrupted {
-            let ckpt = if stage == Stage::Nvs { nvs::checkpoint_path(&cfg.out) } else { inverse::checkpoint_path(&cfg.out) };
+            let ckpt =
+                if stage == Stage::Nvs { nvs::checkpoint_path(&cfg.out) } else { inverse::checkpoint_path(&cfg.out) };
             eprintln!(
                 "interrupted in {name} at iteration {}: checkpoint written to {}; continue with --resume",
                 summary.iterations,

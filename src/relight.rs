@@ -14,11 +14,11 @@
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::optim::{LearningRates, SurfelAdam};
-use crate::shade::incident::{IncidentCache, rotation_for, surfel_rays};
+use crate::shade::incident::IncidentCache;
 use crate::shade::pbr::{Detach, shade_surfels};
 use crate::shade::splitsum::SplitSum;
 use crate::surfels::Surfels;
-use crate::trace::{Features, Ray, RayOutput, Tracer, trace};
+use crate::trace::Tracer;
 use crate::train::consistency::{RcScratch, RcSettings, encode, radiometric_consistency};
 use crate::train::inverse::trace_settings;
 use crate::train::material::{MaterialGrads, MaterialView};
@@ -108,33 +108,8 @@ pub fn traced_cache(
             [0, 1, 2].map(|c| o.diffuse[c] + o.specular[c])
         })
         .collect();
-    let s = samples;
-    let mut cache = IncidentCache {
-        samples: s,
-        weight: 0.0,
-        dirs: vec![[0.0; 3]; n * s],
-        visibility: vec![0.0; n * s],
-        indirect: vec![[0.0; 3]; n * s],
-    };
-    if n == 0 {
-        return Ok(cache);
-    }
-    let mut rays = vec![Ray::default(); n * s];
-    let weights: Vec<f32> = cache
-        .dirs
-        .par_chunks_mut(s)
-        .zip(rays.par_chunks_mut(s))
-        .enumerate()
-        .map(|(i, (d, r))| surfel_rays(surfels, i, offset, rotation_for(seed, i), d, r))
-        .collect();
-    cache.weight = weights[0];
-    let mut out = vec![RayOutput::default(); n * s];
-    let mut of = vec![0.0f32; n * s * 3];
-    trace(&tracer, surfels, &rays, Some(Features { data: &feats, channels: 3 }), &mut out, Some(&mut of));
-    for k in 0..n * s {
-        cache.visibility[k] = out[k].transmittance;
-        cache.indirect[k] = [of[3 * k], of[3 * k + 1], of[3 * k + 2]];
-    }
+    let mut cache = IncidentCache::default();
+    cache.refresh_with(&tracer, surfels, samples, offset, seed, Some(&feats));
     Ok(cache)
 }
 

@@ -15,7 +15,7 @@
 use super::pbr::PbrInputs;
 use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 use crate::surfels::Surfels;
-use crate::trace::{Ray, RayOutput, Tracer, trace};
+use crate::trace::{Features, Ray, RayOutput, Tracer, trace};
 use rayon::prelude::*;
 
 /// Cached incident light: N surfels × S samples, surfel-major.
@@ -82,8 +82,23 @@ impl IncidentCache {
         self.len() == 0
     }
 
-    /// Trace every surfel's S rays (no gradients) and replace the whole cache.
+    /// Trace every surfel's S rays (no gradients) and replace the whole cache; indirect light
+    /// is the hit surfels' SH radiance (decoded to linear).
     pub fn refresh(&mut self, tracer: &Tracer, surfels: &Surfels, samples: usize, offset: f32, seed: u64) {
+        self.refresh_with(tracer, surfels, samples, offset, seed, None);
+    }
+
+    /// As [`refresh`](Self::refresh); with `radiance` (N × 3, linear), the indirect light is
+    /// that per-surfel radiance composited along each ray instead of the SH colour.
+    pub fn refresh_with(
+        &mut self,
+        tracer: &Tracer,
+        surfels: &Surfels,
+        samples: usize,
+        offset: f32,
+        seed: u64,
+        radiance: Option<&[f32]>,
+    ) {
         let n = surfels.len();
         let s = samples;
         self.samples = s;
@@ -103,10 +118,22 @@ impl IncidentCache {
             .collect();
         self.weight = weights[0];
         let mut out = vec![RayOutput::default(); n * s];
-        trace(tracer, surfels, &rays, None, &mut out, None);
-        for (k, o) in out.iter().enumerate() {
-            self.visibility[k] = o.transmittance;
-            self.indirect[k] = o.radiance.map(decode);
+        match radiance {
+            Some(data) => {
+                let mut composited = vec![0.0f32; n * s * 3];
+                trace(tracer, surfels, &rays, Some(Features { data, channels: 3 }), &mut out, Some(&mut composited));
+                for (k, o) in out.iter().enumerate() {
+                    self.visibility[k] = o.transmittance;
+                    self.indirect[k] = [composited[3 * k], composited[3 * k + 1], composited[3 * k + 2]];
+                }
+            }
+            None => {
+                trace(tracer, surfels, &rays, None, &mut out, None);
+                for (k, o) in out.iter().enumerate() {
+                    self.visibility[k] = o.transmittance;
+                    self.indirect[k] = o.radiance.map(decode);
+                }
+            }
         }
     }
 

@@ -8,8 +8,10 @@ use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::raster::{self, Features, Outputs, RasterSettings};
 use crate::shade::incident::IncidentCache;
+use crate::shade::splitsum::SplitSum;
 use crate::surfels::Surfels;
 use crate::trace::Tracer;
+use crate::train::config::Specular;
 use crate::train::consistency::encode;
 use crate::train::inverse::{SurfelShading, VIEW_CHANNELS, trace_settings};
 use crate::train::material::MaterialView;
@@ -24,6 +26,8 @@ pub struct PbrScene {
     /// The env is box-filtered by this factor for the rendering equation's samples
     /// (`env_sample_height` of the training config).
     pub sample_factor: usize,
+    /// How the PBR colour gets its specular lobe (the training config's `specular`).
+    pub specular: Specular,
 }
 
 /// Straight-alpha pictures of one view (colours over `bg` where they are composited).
@@ -61,7 +65,7 @@ impl PbrScene {
         cache.refresh(&tracer, &surfels, samples, offset, seed);
         let mut mats = MaterialView::default();
         mats.update(&surfels);
-        PbrScene { surfels, env, cache, mats, window, sample_factor }
+        PbrScene { surfels, env, cache, mats, window, sample_factor, specular: Specular::Mc }
     }
 
     /// The scene of a run after the inverse stage (`point_cloud.ply` + `envmap.exr`), or None
@@ -81,17 +85,40 @@ impl PbrScene {
             mats.update(&surfels);
             let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, offset, cfg.seed)?;
             let sample_factor = crate::train::inverse::sample_factor(&cfg);
-            return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window, sample_factor }));
+            let specular = cfg.specular;
+            return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window, sample_factor, specular }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        Ok(Some(PbrScene::new(surfels, env, cfg.pbr_samples, offset, cfg.window, factor, cfg.seed)))
+        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, offset, cfg.window, factor, cfg.seed);
+        scene.specular = cfg.specular;
+        Ok(Some(scene))
+    }
+
+    /// The prefiltered env when the specular lobe is split-sum (build once, render many).
+    pub fn split_sum(&self) -> Option<SplitSum> {
+        match self.specular {
+            Specular::SplitSum => {
+                let env = if self.env.height % 8 == 0 && self.env.width == 2 * self.env.height {
+                    self.env.clone()
+                } else {
+                    self.env.resample(128, 64)
+                };
+                Some(SplitSum::new(&env).expect("H × 2H, H a multiple of 8"))
+            }
+            Specular::Mc => None,
+        }
     }
 
     /// Render one view over the background `bg` (sRGB).
     pub fn render(&self, cam: &Camera, bg: [f32; 3]) -> PbrImages {
+        self.render_with(cam, bg, self.split_sum().as_ref())
+    }
+
+    /// As [`render`](Self::render) with the prefiltered env of [`split_sum`](Self::split_sum).
+    pub fn render_with(&self, cam: &Camera, bg: [f32; 3], split_sum: Option<&SplitSum>) -> PbrImages {
         let mut shading = SurfelShading::default();
         let env = self.env.box_downsample(self.sample_factor);
-        shading.compute(&self.surfels, &self.mats, &self.cache, &env, cam, VIEW_CHANNELS);
+        shading.compute(&self.surfels, &self.mats, &self.cache, &env, split_sum, cam, VIEW_CHANNELS);
         self.render_features(cam, bg, &shading.features)
     }
 

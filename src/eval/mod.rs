@@ -302,6 +302,7 @@ fn eval_relight(
                     mats: mats.clone(),
                     window: cfg.window,
                     sample_factor: crate::train::inverse::sample_factor(cfg),
+                    specular: cfg.specular,
                 });
             } else {
                 let settings = FinetuneSettings {

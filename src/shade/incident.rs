@@ -167,6 +167,7 @@ impl IncidentCache {
             samples: self.samples,
             weight: self.weight,
             sample_weights: None,
+            specular: true,
         }
     }
 
@@ -181,6 +182,22 @@ impl IncidentCache {
             den += c;
         }
         if den > 0.0 { num / den } else { 1.0 }
+    }
+
+    /// Cosine-weighted mean indirect radiance of surfel `i` (linear): what the occluded part of
+    /// a split-sum specular lobe sees.
+    pub fn mean_indirect(&self, i: usize, normal: [f32; 3]) -> [f32; 3] {
+        let s = self.samples;
+        let (mut num, mut den) = ([0.0f32; 3], 0.0f32);
+        for k in i * s..(i + 1) * s {
+            let d = self.dirs[k];
+            let c = (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]).max(0.0);
+            for ch in 0..3 {
+                num[ch] += c * self.indirect[k][ch];
+            }
+            den += c;
+        }
+        if den > 0.0 { num.map(|x| x / den) } else { [0.0; 3] }
     }
 }
 

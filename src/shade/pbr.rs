@@ -41,6 +41,9 @@ pub struct PbrInputs<'a> {
     pub weight: f32,
     /// Optional per-sample weights (N·S), e.g. 1/(S·pdf) for importance sampling.
     pub sample_weights: Option<&'a [f32]>,
+    /// Include the GGX specular lobe in f (true), or only the Lambert term (false: the caller
+    /// adds the specular part another way, e.g. split-sum).
+    pub specular: bool,
 }
 
 /// What the backward does not differentiate (the published method's detach switches).
@@ -135,7 +138,7 @@ pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
         if c <= 0.0 {
             continue;
         }
-        let f = brdf::eval(a, r, n, wo, d);
+        let f = if inp.specular { brdf::eval(a, r, n, wo, d) } else { scale(a, std::f64::consts::FRAC_1_PI) };
         let le = to64(env.lookup(inp.dirs[k]));
         let v = inp.visibility[k] as f64;
         let li = to64(inp.indirect[k]);
@@ -205,12 +208,17 @@ fn backward_one(
         // ∂/∂f (then the BRDF backward), ∂/∂c (→ n).
         // The BRDF value and backward in one pass (v_f = wc·g does not depend on f).
         let v_f = scale(g, wc);
-        let (spec, bg) = brdf::specular_with_backward(r, n, wo, d, v_f[0] + v_f[1] + v_f[2]);
+        let spec = if inp.specular {
+            let (spec, bg) = brdf::specular_with_backward(r, n, wo, d, v_f[0] + v_f[1] + v_f[2]);
+            vr += bg.v_roughness;
+            vn = add(vn, bg.v_n);
+            vwo = add(vwo, bg.v_wo);
+            spec
+        } else {
+            0.0
+        };
         let f: V3 = std::array::from_fn(|ch| a[ch] * std::f64::consts::FRAC_1_PI + spec);
         va = add(va, scale(v_f, std::f64::consts::FRAC_1_PI));
-        vr += bg.v_roughness;
-        vn = add(vn, bg.v_n);
-        vwo = add(vwo, bg.v_wo);
         let v_c = w * dot(f, g);
         vn = add(vn, scale(d, v_c));
         // Incident side.
@@ -446,6 +454,7 @@ mod tests {
         ind: Vec<[f32; 3]>,
         s: usize,
         weight: f32,
+        specular: bool,
     }
 
     impl Case {
@@ -461,6 +470,7 @@ mod tests {
                 samples: self.s,
                 weight: self.weight,
                 sample_weights: None,
+                specular: self.specular,
             }
         }
     }
@@ -502,6 +512,7 @@ mod tests {
             ind: (0..n * s).map(|_| [rg.random(), rg.random(), rg.random()]).collect(),
             s,
             weight: weight as f32,
+            specular: true,
         }
     }
 
@@ -599,6 +610,16 @@ mod tests {
 
     #[test]
     fn backward_matches_finite_differences() {
+        check_backward(true);
+    }
+
+    #[test]
+    fn backward_without_specular_matches_finite_differences() {
+        check_backward(false);
+    }
+
+    fn check_backward(specular: bool) {
+        let random_case = |n, s, seed| Case { specular, ..random_case(n, s, seed) };
         let env = random_env(16, 32, 2);
         let case = random_case(5, 16, 3);
         let n = case.albedo.len();
@@ -784,6 +805,7 @@ mod tests {
                 dirs,
                 s,
                 weight: weight as f32,
+                specular: true,
             };
             let (mut od, mut oi) = (vec![[0.0; 3]; reps], vec![[0.0; 3]; reps]);
             shade_surfels(&c.inputs(), &env, &mut od, &mut oi).unwrap();

@@ -558,6 +558,70 @@ impl SplitSum {
         ([a[0] * irr[0], a[1] * irr[1], a[2] * irr[2]], scale(p, spec))
     }
 
+    /// The specular lobe alone with occlusion: (F0·A(NoV, r) + B(NoV, r)) · (o·P(R, r) + fill),
+    /// where o ∈ [0, 1] scales the env part (specular occlusion) and `fill` is the radiance
+    /// standing in for the occluded part (both constants: no gradient). o = 1, fill = 0 is the
+    /// specular term of [`shade64`](Self::shade64).
+    pub fn specular_lobe(&self, r: f64, n: V3, wo: V3, occlusion: f64, fill: V3) -> V3 {
+        let ndv = dot(n, wo);
+        let refl = add(scale(n, 2.0 * ndv), scale(wo, -1.0));
+        let (p, _, _) = self.prefiltered(refl, r);
+        let lut = BrdfLut::get().lookup(ndv.clamp(super::brdf::COS_EPS, 1.0), r);
+        let k = super::brdf::F0 * lut.a + lut.b;
+        std::array::from_fn(|ch| k * (occlusion * p[ch] + fill[ch]))
+    }
+
+    /// Backward of [`specular_lobe`](Self::specular_lobe) for the upstream gradient `v`:
+    /// returns (∂/∂r, ∂/∂n, ∂/∂ω_o) and adds the prefiltered-map gradients into `grads`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn specular_lobe_backward(
+        &self,
+        r: f64,
+        n: V3,
+        wo: V3,
+        occlusion: f64,
+        fill: V3,
+        v: V3,
+        grads: &mut SplitSumGrads,
+    ) -> (f64, V3, V3) {
+        let ndv = dot(n, wo);
+        let refl = add(scale(n, 2.0 * ndv), scale(wo, -1.0));
+        let (p, jp, dp_dr) = self.prefiltered(refl, r);
+        let (nov, live) = if ndv < super::brdf::COS_EPS {
+            (super::brdf::COS_EPS, 0.0)
+        } else if ndv > 1.0 {
+            (1.0, 0.0)
+        } else {
+            (ndv, 1.0)
+        };
+        let lut = BrdfLut::get().lookup(nov, r);
+        let spec = super::brdf::F0 * lut.a + lut.b;
+        let incident: V3 = std::array::from_fn(|ch| occlusion * p[ch] + fill[ch]);
+        let v_spec = dot(v, incident);
+        let v_p = scale(v, spec * occlusion);
+        let mut v_r = dot(v_p, dp_dr) + v_spec * (super::brdf::F0 * lut.da_dr + lut.db_dr);
+        let v_nov = v_spec * (super::brdf::F0 * lut.da_dnov + lut.db_dnov) * live;
+        // Prefiltered maps: bilinear scatter into the two levels.
+        let (k, t, _) = level_coords(r);
+        env_lookup_scatter(&self.levels[k], refl, scale(v_p, 1.0 - t), &mut grads.v_levels[k]);
+        env_lookup_scatter(&self.levels[k + 1], refl, scale(v_p, t), &mut grads.v_levels[k + 1]);
+        // R = 2(n·ω_o)n − ω_o.
+        let mut v_refl = [0.0; 3];
+        for ch in 0..3 {
+            v_refl = add(v_refl, scale(jp[ch], v_p[ch]));
+        }
+        let rdn = dot(v_refl, n);
+        let mut v_n = add(scale(v_refl, 2.0 * ndv), scale(wo, 2.0 * rdn));
+        let mut v_wo = add(scale(n, 2.0 * rdn), scale(v_refl, -1.0));
+        // NoV into the LUT.
+        v_n = add(v_n, scale(wo, v_nov));
+        v_wo = add(v_wo, scale(n, v_nov));
+        if !(0.0..=1.0).contains(&r) {
+            v_r = 0.0;
+        }
+        (v_r, v_n, v_wo)
+    }
+
     /// Backward of [`shade`] for the upstream gradient `v_rgb` on diffuse + specular. Returns
     /// the point's gradients and adds the map gradients into `grads`.
     pub fn shade_backward(
@@ -580,40 +644,8 @@ impl SplitSum {
             v_n = add(v_n, scale(jirr[ch], v_irr[ch]));
         }
         // Specular.
-        let ndv = dot(n, wo);
-        let refl = add(scale(n, 2.0 * ndv), scale(wo, -1.0));
-        let (p, jp, dp_dr) = self.prefiltered(refl, r);
-        let (nov, live) = if ndv < super::brdf::COS_EPS {
-            (super::brdf::COS_EPS, 0.0)
-        } else if ndv > 1.0 {
-            (1.0, 0.0)
-        } else {
-            (ndv, 1.0)
-        };
-        let lut = BrdfLut::get().lookup(nov, r);
-        let spec = super::brdf::F0 * lut.a + lut.b;
-        let v_spec = dot(v, p);
-        let v_p = scale(v, spec);
-        let mut v_r = dot(v_p, dp_dr) + v_spec * (super::brdf::F0 * lut.da_dr + lut.db_dr);
-        let v_nov = v_spec * (super::brdf::F0 * lut.da_dnov + lut.db_dnov) * live;
-        // Prefiltered maps: bilinear scatter into the two levels.
-        let (k, t, _) = level_coords(r);
-        env_lookup_scatter(&self.levels[k], refl, scale(v_p, 1.0 - t), &mut grads.v_levels[k]);
-        env_lookup_scatter(&self.levels[k + 1], refl, scale(v_p, t), &mut grads.v_levels[k + 1]);
-        // R = 2(n·ω_o)n − ω_o.
-        let mut v_refl = [0.0; 3];
-        for ch in 0..3 {
-            v_refl = add(v_refl, scale(jp[ch], v_p[ch]));
-        }
-        let rdn = dot(v_refl, n);
-        v_n = add(v_n, add(scale(v_refl, 2.0 * ndv), scale(wo, 2.0 * rdn)));
-        let mut v_wo = add(scale(n, 2.0 * rdn), scale(v_refl, -1.0));
-        // NoV into the LUT.
-        v_n = add(v_n, scale(wo, v_nov));
-        v_wo = add(v_wo, scale(n, v_nov));
-        if !(0.0..=1.0).contains(&r) {
-            v_r = 0.0;
-        }
+        let (v_r, v_ns, v_wo) = self.specular_lobe_backward(r, n, wo, 1.0, [0.0; 3], v, grads);
+        let v_n = add(v_n, v_ns);
         PointGrads { v_albedo: to32(v_albedo), v_roughness: v_r as f32, v_n: to32(v_n), v_wo: to32(v_wo) }
     }
 
@@ -906,6 +938,57 @@ mod tests {
                 assert!(close(pg.v_n[c] as f64, fd, 2e-3, 2e-3), "case {case} v_n[{c}] {} vs {fd}", pg.v_n[c]);
                 let fd = (obj(a, r, n, bump(wo, e)) - obj(a, r, n, bump(wo, -e))) / (2.0 * e);
                 assert!(close(pg.v_wo[c] as f64, fd, 2e-3, 2e-3), "case {case} v_wo[{c}] {} vs {fd}", pg.v_wo[c]);
+            }
+        }
+    }
+
+    #[test]
+    fn occluded_specular_lobe_matches_finite_differences() {
+        let env = random_env(64, 128, 12);
+        let ss = SplitSum::new(&env).unwrap();
+        let mut rg = rng(13);
+        let wch = [0.7, 1.1, -0.5];
+        for case in 0..40 {
+            let n = unit(&mut rg);
+            let wo = unit_in(&mut rg, n, if case % 5 == 0 { 0.0 } else { 0.05 });
+            let r: f64 = match case % 4 {
+                0 => rg.random_range(0.001..0.05),
+                1 => rg.random_range(0.95..0.999),
+                _ => rg.random_range(0.05..0.95),
+            };
+            let occ: f64 = if case % 3 == 0 { 0.0 } else { rg.random() };
+            let fill: V3 = [rg.random(), rg.random(), rg.random()];
+            let obj = |r: f64, n: V3, wo: V3| dot(wch, ss.specular_lobe(r, n, wo, occ, fill));
+            let mut g = ss.zero_grads();
+            let (v_r, v_n, v_wo) = ss.specular_lobe_backward(r, n, wo, occ, fill, wch, &mut g);
+            let e = 1e-6;
+            let fd = (obj(r + e, n, wo) - obj(r - e, n, wo)) / (2.0 * e);
+            assert!(close(v_r, fd, 2e-3, 1e-3), "case {case} v_r {v_r} vs {fd}");
+            for c in 0..3 {
+                let bump = |v: V3, s: f64| {
+                    let mut p = v;
+                    p[c] += s;
+                    p
+                };
+                let fd = (obj(r, bump(n, e), wo) - obj(r, bump(n, -e), wo)) / (2.0 * e);
+                assert!(close(v_n[c], fd, 2e-3, 2e-3), "case {case} v_n[{c}] {} vs {fd}", v_n[c]);
+                let fd = (obj(r, n, bump(wo, e)) - obj(r, n, bump(wo, -e))) / (2.0 * e);
+                assert!(close(v_wo[c], fd, 2e-3, 2e-3), "case {case} v_wo[{c}] {} vs {fd}", v_wo[c]);
+            }
+            // Env texels (linear): a unit step on the texels with the largest gradients.
+            if case % 10 == 1 {
+                let mut vt = vec![[0.0f32; 3]; env.texels.len()];
+                ss.backward_to_env(&g, &mut vt);
+                let mut order: Vec<usize> = (0..vt.len()).collect();
+                order.sort_by(|&a, &b| vt[b][1].abs().total_cmp(&vt[a][1].abs()));
+                assert!(occ == 0.0 || vt[order[0]][1] != 0.0);
+                for &t in &order[..6] {
+                    let mut e2 = env.clone();
+                    e2.texels[t][1] += 1.0;
+                    let s2 = SplitSum::new(&e2).unwrap();
+                    let fd = dot(wch, s2.specular_lobe(r, n, wo, occ, fill)) - obj(r, n, wo);
+                    assert!(close(vt[t][1] as f64, fd, 1e-3, 1e-6), "case {case} texel {t}: {} vs {fd}", vt[t][1]);
+                }
             }
         }
     }

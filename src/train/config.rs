@@ -31,6 +31,18 @@ pub enum Background {
     Black,
 }
 
+/// How the inverse stage's PBR colour gets its specular lobe.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Specular {
+    /// Monte Carlo over the cached S directions, like the diffuse lobe (the published method).
+    Mc,
+    /// Split-sum: the env prefiltered by roughness at the reflection direction × the GGX LUT,
+    /// scaled by the surfel's cached visibility, plus its mean indirect light for the occluded
+    /// part. The diffuse lobe stays Monte Carlo with traced visibility and indirect light.
+    SplitSum,
+}
+
 /// Train surfels from a dataset of posed RGBA images.
 #[derive(clap::Args, Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -213,6 +225,11 @@ pub struct TrainConfig {
     /// with `--lr-env 0` a light held fixed (diagnostics, ablations).
     #[arg(long)]
     pub env_init_map: Option<PathBuf>,
+    /// Specular lobe of the inverse stage's PBR colour: `mc` (S cached directions, as
+    /// published) or `split-sum` (prefiltered env at the reflection direction; glossy
+    /// reflections a few samples cannot resolve).
+    #[arg(long, value_enum, default_value_t = Specular::Mc)]
+    pub specular: Specular,
     /// Traced rays leave a surfel from μ + offset·n, offset = this × the scene extent.
     #[arg(long, default_value_t = 0.002)]
     pub ray_offset: f32,

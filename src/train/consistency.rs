@@ -200,6 +200,7 @@ pub fn radiometric_consistency(
         samples: r,
         weight: sc.weight,
         sample_weights: None,
+        specular: true,
     };
     sc.direct.resize(m, [0.0; 3]);
     sc.indirect.resize(m, [0.0; 3]);

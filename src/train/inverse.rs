@@ -33,10 +33,11 @@ use crate::optim::{Adam, LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
 use crate::shade::incident::IncidentCache;
 use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
+use crate::shade::splitsum::{SplitSum, SplitSumGrads};
 use crate::surfels::{Surfels, albedo_to_logit, logit};
 use crate::trace::{TraceSettings, Tracer};
 use crate::train::checkpoint::Checkpoint;
-use crate::train::config::{Background, TrainConfig};
+use crate::train::config::{Background, Specular, TrainConfig};
 use crate::train::interrupt;
 use anyhow::Context;
 use rand::RngExt;
@@ -233,16 +234,25 @@ pub struct SurfelShading {
     pub direct: Vec<[f32; 3]>,
     pub indirect: Vec<[f32; 3]>,
     pub features: Vec<f32>,
+    /// Per active surfel, with a split-sum specular lobe: its occlusion (cached mean
+    /// visibility) and fill radiance (cached mean indirect light).
+    pub spec_occlusion: Vec<f32>,
+    pub spec_fill: Vec<[f32; 3]>,
 }
 
 impl SurfelShading {
-    /// Shade for `camera` with `channels` = [`TRAIN_CHANNELS`] or [`VIEW_CHANNELS`].
+    /// Shade for `camera` with `channels` = [`TRAIN_CHANNELS`] or [`VIEW_CHANNELS`]. With
+    /// `split_sum`, the Monte Carlo sum over the cache is Lambert only and the specular lobe
+    /// comes from the prefiltered env ([`SplitSum::specular_lobe`]); its env part counts as
+    /// direct light, its fill part as indirect.
+    #[allow(clippy::too_many_arguments)]
     pub fn compute(
         &mut self,
         surfels: &Surfels,
         mats: &MaterialView,
         cache: &IncidentCache,
         env: &EnvMap,
+        split_sum: Option<&SplitSum>,
         camera: &Camera,
         channels: usize,
     ) {
@@ -263,8 +273,29 @@ impl SurfelShading {
         let m = self.active.len();
         self.direct.resize(m, [0.0; 3]);
         self.indirect.resize(m, [0.0; 3]);
-        let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &self.view);
+        let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &self.view);
+        inp.specular = split_sum.is_none();
         shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
+        self.spec_occlusion.clear();
+        self.spec_fill.clear();
+        if let Some(ss) = split_sum {
+            use crate::shade::to64;
+            for (k, &i) in self.active.iter().enumerate() {
+                let i = i as usize;
+                let nn = mats.normal[i];
+                let occ = cache.mean_visibility(i, nn);
+                let fill = cache.mean_indirect(i, nn);
+                let (r, n, wo) = (mats.roughness[i] as f64, to64(nn), to64(self.view[i]));
+                let env_part = ss.specular_lobe(r, n, wo, occ as f64, [0.0; 3]);
+                let fill_part = ss.specular_lobe(r, n, wo, 0.0, to64(fill));
+                for ch in 0..3 {
+                    self.direct[k][ch] += env_part[ch] as f32;
+                    self.indirect[k][ch] += fill_part[ch] as f32;
+                }
+                self.spec_occlusion.push(occ);
+                self.spec_fill.push(fill);
+            }
+        }
         self.features.clear();
         self.features.resize(n * channels, 0.0);
         for i in 0..n {
@@ -340,6 +371,7 @@ struct Scratch {
     v_env_small: Vec<[f32; 3]>,
     v_env_log: Vec<f32>,
     rc: RcScratch,
+    ss_grads: Option<SplitSumGrads>,
 }
 
 fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
@@ -361,6 +393,7 @@ fn iterate(
     state: &InverseState,
     env_full: &EnvMap,
     env: &EnvMap,
+    split_sum: Option<&SplitSum>,
     tracer: &Tracer,
     images: &TrainImages,
     view_index: usize,
@@ -377,7 +410,7 @@ fn iterate(
     let ch = TRAIN_CHANNELS;
     let t0 = Instant::now();
     sc.mats.update(s);
-    sc.shading.compute(s, &sc.mats, &state.cache, env, cam, ch);
+    sc.shading.compute(s, &sc.mats, &state.cache, env, split_sum, cam, ch);
     let t1 = Instant::now();
     t.shading += (t1 - t0).as_secs_f64();
     let settings = RasterSettings {
@@ -515,9 +548,33 @@ fn iterate(
         let f = &sc.v_feat[i as usize * ch..i as usize * ch + 3];
         [f[0], f[1], f[2]]
     }));
-    let inp = state.cache.inputs(&sc.mats.albedo, &sc.mats.roughness, &sc.mats.normal, &sh.view);
+    let mut inp = state.cache.inputs(&sc.mats.albedo, &sc.mats.roughness, &sc.mats.normal, &sh.view);
+    inp.specular = split_sum.is_none();
     shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
         .expect("sized above");
+    if let Some(ss) = split_sum {
+        // The split-sum specular lobe: same upstream gradient as the rest of the PBR colour.
+        use crate::shade::to64;
+        let grads = sc.ss_grads.get_or_insert_with(|| ss.zero_grads());
+        if grads.v_levels.len() != ss.levels.len()
+            || grads.v_levels.iter().zip(&ss.levels).any(|(g, l)| g.len() != l.texels.len())
+        {
+            *grads = ss.zero_grads();
+        }
+        grads.v_levels.iter_mut().flatten().for_each(|t| *t = [0.0; 3]);
+        grads.v_irradiance.iter_mut().for_each(|t| *t = [0.0; 3]);
+        for (k, &i) in sh.active.iter().enumerate() {
+            let i = i as usize;
+            let (r, n, wo) = (sc.mats.roughness[i] as f64, to64(sc.mats.normal[i]), to64(sh.view[i]));
+            let (occ, fill) = (sh.spec_occlusion[k] as f64, to64(sh.spec_fill[k]));
+            let (v_r, v_n, v_wo) = ss.specular_lobe_backward(r, n, wo, occ, fill, to64(sc.v_sub_pbr[k]), grads);
+            sc.sub.v_roughness[k] += v_r as f32;
+            for c in 0..3 {
+                sc.sub.v_normal[k][c] += v_n[c] as f32;
+                sc.sub.v_view[k][c] += v_wo[c] as f32;
+            }
+        }
+    }
     let eye = cam.position().to_array();
     for (k, &i) in sh.active.iter().enumerate() {
         let i = i as usize;
@@ -568,6 +625,9 @@ fn iterate(
     sc.v_env.clear();
     sc.v_env.resize(env_full.texels.len(), [0.0; 3]);
     env_full.box_downsample_backward(sample_factor(cfg), &sc.v_env_small, &mut sc.v_env);
+    if let (Some(ss), Some(grads)) = (split_sum, &sc.ss_grads) {
+        ss.backward_to_env(grads, &mut sc.v_env);
+    }
     // Env priors on the linear texels, then the exp activation.
     let env = env_full;
     let hh = state.env_height;
@@ -659,11 +719,16 @@ pub fn run_until(
         v_surfels.sh_degree = state.surfels.sh_degree;
         let env = state.env();
         let env_s = env.box_downsample(sample_factor(cfg));
+        let split_sum = match cfg.specular {
+            Specular::SplitSum => Some(SplitSum::new(&env)?),
+            Specular::Mc => None,
+        };
         last = iterate(
             cfg,
             &state,
             &env,
             &env_s,
+            split_sum.as_ref(),
             &tracer,
             &images,
             view,
@@ -756,4 +821,57 @@ pub fn run_until(
         },
         interrupted,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::shade::splitsum::BrdfLut;
+
+    /// Furnace for the split-sum specular path: a lone surfel under a constant env L has
+    /// V = 1 and no indirect light, so its PBR colour is a·L·(10° floor coverage) from the
+    /// Lambert Monte Carlo sum plus L·(F0·A + B) from the split-sum lobe — and with
+    /// `split_sum = None` the lobe comes from the Monte Carlo sum instead.
+    #[test]
+    fn split_sum_furnace_on_a_lone_surfel() {
+        let mut s = Surfels::random_in_box(1, [0.0; 3], [0.0; 3], 2);
+        let n = [0.3f32, -0.2, 0.9];
+        s.quats[0] = crate::surfels::quat_with_normal(n);
+        s.albedo_logits[0] = [albedo_to_logit(0.6), albedo_to_logit(0.2), albedo_to_logit(0.4)];
+        s.roughness_logits[0] = logit(0.35);
+        let l = [1.3f32, 0.7, 2.0];
+        let env = EnvMap::constant(128, 64, l);
+        let ss = SplitSum::new(&env).unwrap();
+        let tracer = Tracer::build(&s, &trace_settings());
+        let mut cache = IncidentCache::default();
+        cache.refresh(&tracer, &s, 64, 1e-3, 5);
+        assert!(cache.visibility.iter().all(|&v| v == 1.0));
+        let mut mats = MaterialView::default();
+        mats.update(&s);
+        let eye = glam::Vec3::new(1.0, -1.5, 3.0);
+        let cam = Camera::look_at("furnace", eye, glam::Vec3::ZERO, 32, 32, 0.8);
+        let mut sh = SurfelShading::default();
+        sh.compute(&s, &mats, &cache, &env, Some(&ss), &cam, VIEW_CHANNELS);
+        assert_eq!(sh.active, vec![0]);
+        let nn = mats.normal[0];
+        let wo = view_dir(s.means[0], eye.to_array());
+        let nov = (nn[0] * wo[0] + nn[1] * wo[1] + nn[2] * wo[2]) as f64;
+        let lut = BrdfLut::get().lookup(nov, mats.roughness[0] as f64);
+        let spec = crate::shade::brdf::F0 * lut.a + lut.b;
+        let coverage = 1.0 - 10f64.to_radians().sin().powi(2);
+        for c in 0..3 {
+            let want = mats.albedo[0][c] as f64 * l[c] as f64 * coverage + l[c] as f64 * spec;
+            let got = sh.features[c] as f64;
+            assert!((got - want).abs() < 3e-3 * l[c] as f64, "channel {c}: {got} vs {want}");
+            assert_eq!(sh.features[7 + c], 0.0, "no indirect light");
+        }
+        // Monte Carlo lobe instead: same Lambert part, a different (noisier) specular estimate.
+        let mut mc = SurfelShading::default();
+        mc.compute(&s, &mats, &cache, &env, None, &cam, VIEW_CHANNELS);
+        for c in 0..3 {
+            let lambert = mats.albedo[0][c] as f64 * l[c] as f64 * coverage;
+            let mc_spec = mc.features[c] as f64 - lambert;
+            assert!(mc_spec > 0.0 && (mc_spec - l[c] as f64 * spec).abs() < 0.5 * l[c] as f64 * spec + 1e-3);
+        }
+    }
 }

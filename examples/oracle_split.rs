@@ -1,0 +1,187 @@
+//! Diagnostic: per test view, masked means of our PBR radiance split into direct and indirect
+//! parts beside the dataset's `indirect.exr` layers (direct.*, RGB = indirect).
+//!
+//!     cargo run --release --example oracle_split -- RUN DATA [VIEWS]
+
+use radiogs::io::dataset::{Dataset, Split};
+use radiogs::io::image::{read_exr_channels, srgb_to_linear};
+use std::path::PathBuf;
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    let (run, data) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
+    let nviews: usize = args.get(3).map(|s| s.parse().unwrap()).unwrap_or(4);
+    let mut scene = radiogs::pbr_scene::PbrScene::from_run(&run)?.expect("run has no envmap.exr");
+    if let Ok(v) = std::env::var("ENV_ROT") {
+        scene.env = scene.env.rotated_about_up(v.parse()?);
+    }
+    if std::env::var("ENV_MIRROR").is_ok() {
+        // u → 1 − u: the azimuth mirrored (y → −y).
+        let (w, h) = (scene.env.width, scene.env.height);
+        let old = scene.env.texels.clone();
+        for j in 0..h {
+            for i in 0..w {
+                scene.env.texels[j * w + i] = old[j * w + (w - 1 - i)];
+            }
+        }
+    }
+    if std::env::var("ANALYTIC_VIS").is_ok() {
+        analytic_visibility(&mut scene, &data)?;
+    }
+    if let Ok(v) = std::env::var("VIS_SCALE") {
+        let f: f32 = v.parse()?;
+        scene.cache.visibility.iter_mut().for_each(|x| *x = (*x * f).min(1.0));
+    }
+    let ds = Dataset::open(&data)?;
+    let mut tot = [[0.0f64; 3]; 7];
+    for view in ds.views(Split::Test).iter().take(nviews) {
+        let img = scene.render(&view.camera, [0.0; 3]);
+        let exr = view.pass_path(radiogs::io::dataset::Pass::Indirect).unwrap();
+        let gt_ind = read_exr_channels(&exr, &["R", "G", "B", "A"])?;
+        let gt_dir = read_exr_channels(&exr, &["direct.R", "direct.G", "direct.B"])?;
+        let gt = view.load_image()?;
+        let mut acc = [[0.0f64; 3]; 7];
+        let mut n = 0.0f64;
+        let mut sq = 0.0f64;
+        for p in 0..img.alpha.len() {
+            if gt.data[p * 4 + 3] < 0.99 || img.alpha[p] < 0.99 {
+                continue;
+            }
+            n += 1.0;
+            for k in 0..3 {
+                let ours = srgb_to_linear(img.pbr[p][k]) as f64;
+                let ind = img.indirect[p][k] as f64;
+                sq += (ours - ind - gt_dir.data[p * 3 + k] as f64).powi(2);
+                let vals = [
+                    srgb_to_linear(gt.data[p * 4 + k]) as f64,
+                    ours,
+                    gt_dir.data[p * 3 + k] as f64,
+                    ours - ind,
+                    gt_ind.data[p * 4 + k] as f64,
+                    ind,
+                    img.visibility[p] as f64,
+                ];
+                for (a, v) in acc.iter_mut().zip(vals) {
+                    a[k] += v;
+                }
+            }
+        }
+        if let Ok(dir) = std::env::var("DUMP") {
+            // direct GT | direct ours | ratio (grey = 1, ×2 contrast) side by side, sRGB.
+            let (w, h) = (view.camera.width, view.camera.height);
+            let mut out = radiogs::io::image::Image::new(3 * w, 2 * h, 3);
+            for y in 0..h {
+                for x in 0..w {
+                    let p = (y * w + x) as usize;
+                    let ok = gt.data[p * 4 + 3] > 0.99 && img.alpha[p] > 0.99;
+                    for k in 0..3 {
+                        let g = gt_dir.data[p * 3 + k];
+                        let o = srgb_to_linear(img.pbr[p][k]) - img.indirect[p][k];
+                        out.pixel_mut(x, y)[k] = radiogs::io::image::linear_to_srgb(g.clamp(0.0, 1.0));
+                        out.pixel_mut(x + w, y)[k] = radiogs::io::image::linear_to_srgb(o.clamp(0.0, 1.0));
+                        let r = if ok { (0.5 + 2.0 * (o / g.max(1e-3)).ln()).clamp(0.0, 1.0) } else { 0.0 };
+                        out.pixel_mut(x + 2 * w, y)[k] = r;
+                        // Second row: indirect GT | ours | ratio (×4 exposure on the pictures).
+                        let gi = gt_ind.data[p * 4 + k];
+                        let oi = img.indirect[p][k];
+                        out.pixel_mut(x, y + h)[k] = radiogs::io::image::linear_to_srgb((4.0 * gi).clamp(0.0, 1.0));
+                        out.pixel_mut(x + w, y + h)[k] = radiogs::io::image::linear_to_srgb((4.0 * oi).clamp(0.0, 1.0));
+                        let ri =
+                            if ok { (0.5 + 1.0 * (oi.max(1e-4) / gi.max(1e-3)).ln()).clamp(0.0, 1.0) } else { 0.0 };
+                        out.pixel_mut(x + 2 * w, y + h)[k] = ri;
+                    }
+                }
+            }
+            radiogs::io::image::write_image(
+                &std::path::Path::new(&dir).join(format!("{}_direct.png", view.camera.name)),
+                &out,
+            )?;
+        }
+        let f = |a: [f64; 3]| format!("[{:.4} {:.4} {:.4}]", a[0] / n, a[1] / n, a[2] / n);
+        println!(
+            "{} rmse_direct {:.4}: total gt {} ours {} | direct gt {} ours {} | indirect gt {} ours {} | vis {:.3}",
+            view.camera.name,
+            (sq / n / 3.0).sqrt(),
+            f(acc[0]),
+            f(acc[1]),
+            f(acc[2]),
+            f(acc[3]),
+            f(acc[4]),
+            f(acc[5]),
+            acc[6][0] / n
+        );
+        for (t, a) in tot.iter_mut().zip(acc) {
+            for k in 0..3 {
+                t[k] += a[k] / n / nviews as f64;
+            }
+        }
+    }
+    let names = ["total gt", "total ours", "direct gt", "direct ours", "indirect gt", "indirect ours", "visibility"];
+    for (nm, t) in names.iter().zip(tot) {
+        println!("{nm:14} {:.4} {:.4} {:.4}", t[0], t[1], t[2]);
+    }
+    Ok(())
+}
+
+/// Replace the cache's traced visibility by exact ray casts against the dataset's objects.
+fn analytic_visibility(scene: &mut radiogs::pbr_scene::PbrScene, data: &std::path::Path) -> anyhow::Result<()> {
+    let readme: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data.join("README.json"))?)?;
+    let objects = readme["objects"].as_array().unwrap().clone();
+    let f3 = |v: &serde_json::Value| -> [f64; 3] { [0, 1, 2].map(|k| v[k].as_f64().unwrap()) };
+    let s = scene.cache.samples;
+    let offset = 0.01f64;
+    let n = scene.surfels.len();
+    let (mut before, mut after) = (0.0f64, 0.0f64);
+    for i in 0..n {
+        let m = scene.surfels.means[i];
+        let nn = scene.surfels.normal(i);
+        let o = [0, 1, 2].map(|k| m[k] as f64 + offset * nn[k] as f64);
+        for k in i * s..(i + 1) * s {
+            let d = scene.cache.dirs[k].map(|x| x as f64);
+            let mut hit = false;
+            for obj in &objects {
+                let loc = f3(&obj["location"]);
+                let rz = obj["rotation_euler"][2].as_f64().unwrap();
+                let (sn, c) = rz.sin_cos();
+                let rel = [o[0] - loc[0], o[1] - loc[1], o[2] - loc[2]];
+                let ro = [c * rel[0] + sn * rel[1], -sn * rel[0] + c * rel[1], rel[2]];
+                let rd = [c * d[0] + sn * d[1], -sn * d[0] + c * d[1], d[2]];
+                let t_hit = match obj["type"].as_str().unwrap() {
+                    "uv_sphere" => {
+                        let r = obj["params"]["radius"].as_f64().unwrap();
+                        let b = ro[0] * rd[0] + ro[1] * rd[1] + ro[2] * rd[2];
+                        let cc = ro[0] * ro[0] + ro[1] * ro[1] + ro[2] * ro[2] - r * r;
+                        let disc = b * b - cc;
+                        if disc < 0.0 || cc < 0.0 { None } else { Some(-b - disc.sqrt()) }
+                    }
+                    _ => {
+                        let h = f3(&obj["params"]["half_extents"]);
+                        let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+                        for a in 0..3 {
+                            let inv = 1.0 / rd[a];
+                            let (mut ta, mut tb) = ((-h[a] - ro[a]) * inv, (h[a] - ro[a]) * inv);
+                            if ta > tb {
+                                std::mem::swap(&mut ta, &mut tb);
+                            }
+                            t0 = t0.max(ta);
+                            t1 = t1.min(tb);
+                        }
+                        if t0 <= t1 && t0 > 0.0 { Some(t0) } else { None }
+                    }
+                };
+                if let Some(t) = t_hit
+                    && t > 0.0
+                {
+                    hit = true;
+                    break;
+                }
+            }
+            before += scene.cache.visibility[k] as f64;
+            let v = if hit { 0.0 } else { 1.0 };
+            after += v;
+            scene.cache.visibility[k] = v as f32;
+        }
+    }
+    println!("mean sample visibility: traced {:.4}, analytic {:.4}", before / (n * s) as f64, after / (n * s) as f64);
+    Ok(())
+}

@@ -25,6 +25,41 @@ fn main() -> anyhow::Result<()> {
             }
         }
     }
+    if std::env::var("LINEAR_COMPOSITE").is_ok() {
+        // Indirect light composited in linear radiance (each hit's colour decoded before
+        // blending; view-independent: the SH DC colour) instead of decoding the sRGB composite.
+        let s = &scene.surfels;
+        let lin: Vec<f32> = (0..s.len())
+            .flat_map(|i| {
+                let dc = s.sh[i][0];
+                (0..3).map(move |ch| radiogs::shade::incident::decode((0.5 + radiogs::sh::SH_C0 * dc[ch]).max(0.0)))
+            })
+            .collect();
+        let srgb: Vec<f32> = (0..s.len())
+            .flat_map(|i| {
+                let dc = s.sh[i][0];
+                (0..3).map(move |ch| (0.5 + radiogs::sh::SH_C0 * dc[ch]).max(0.0))
+            })
+            .collect();
+        let tracer = radiogs::trace::Tracer::build(s, &radiogs::train::inverse::trace_settings());
+        let mean = |c: &radiogs::shade::incident::IncidentCache| {
+            c.indirect.iter().map(|c| c[1] as f64).sum::<f64>() / c.indirect.len() as f64
+        };
+        let before = mean(&scene.cache);
+        let samples = scene.cache.samples;
+        let extent = radiogs::pbr_scene::scene_extent(&run);
+        let cfg = radiogs::eval::load_run_config(&run)?;
+        let offset = cfg.ray_offset * extent;
+        let mut dc_srgb = radiogs::shade::incident::IncidentCache::default();
+        dc_srgb.refresh_with(&tracer, s, samples, offset, cfg.seed, Some(&srgb));
+        dc_srgb.indirect.iter_mut().for_each(|c| *c = c.map(radiogs::shade::incident::decode));
+        scene.cache.refresh_with(&tracer, s, samples, offset, cfg.seed, Some(&lin));
+        println!(
+            "mean indirect (G) per sample: SH sRGB composite decoded {before:.4}, DC sRGB composite decoded {:.4}, DC linear composite {:.4}",
+            mean(&dc_srgb),
+            mean(&scene.cache)
+        );
+    }
     if std::env::var("ANALYTIC_VIS").is_ok() {
         analytic_visibility(&mut scene, &data)?;
     }

@@ -98,7 +98,7 @@ impl PbrScene {
     pub fn split_sum(&self) -> Option<SplitSum> {
         match self.specular {
             Specular::SplitSum => {
-                let env = if self.env.height % 8 == 0 && self.env.width == 2 * self.env.height {
+                let env = if self.env.height.is_multiple_of(8) && self.env.width == 2 * self.env.height {
                     self.env.clone()
                 } else {
                     self.env.resample(128, 64)

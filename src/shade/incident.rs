@@ -131,7 +131,8 @@ impl IncidentCache {
                 trace(tracer, surfels, &rays, None, &mut out, None);
                 for (k, o) in out.iter().enumerate() {
                     self.visibility[k] = o.transmittance;
-                    self.indirect[k] = o.radiance.map(decode);
+                    self.indirect[k] =
+                        if tracer.settings.linear_radiance { o.radiance } else { o.radiance.map(decode) };
                 }
             }
         }

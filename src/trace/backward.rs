@@ -18,6 +18,7 @@
 //! scheduling (no atomics, no per-hit locking).
 
 use crate::sh::{self, SH_COEFFS};
+use crate::shade::incident::{decode, decode_derivative};
 use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat, rotation_from_quat_backward, sigmoid};
 use crate::trace::bvh::{Hit, PreparedRay, Tracer};
 use crate::trace::forward::{march, sh_colour, unit};
@@ -283,13 +284,16 @@ impl Ctx<'_> {
                 }
             } else {
                 let craw = sh_colour(&surfels.sh[i], &basis, self.ncoef);
+                let linear = tracer.settings.linear_radiance;
                 let mut v_c = [0.0f32; 3];
                 for c in 0..3 {
-                    let col = craw[c].max(0.0);
+                    let clamped = craw[c].max(0.0);
+                    let col = if linear { decode(clamped) } else { clamped };
                     v_alpha += g.v_radiance[c] * (trans * col - s_rad[c] * inv);
                     s_rad[c] += w * col;
                     if craw[c] > 0.0 {
-                        v_c[c] = g.v_radiance[c] * w;
+                        let dcol = if linear { decode_derivative(clamped) } else { 1.0 };
+                        v_c[c] = g.v_radiance[c] * w * dcol;
                     }
                 }
                 let coeffs = &surfels.sh[i];

@@ -10,6 +10,7 @@
 
 use crate::camera::Camera;
 use crate::sh::{self, SH_COEFFS};
+use crate::shade::incident::decode;
 use crate::surfels::Surfels;
 use crate::trace::bvh::{Hit, PreparedRay, Tracer};
 use crate::trace::{Features, MAX_CHUNK, Ray, RayOutput, TraceSettings};
@@ -112,6 +113,7 @@ fn trace_one(
     let basis = sh::basis(unit(ray.dir).0);
     let mut o = RayOutput::default();
     let two_sided = tracer.settings.two_sided;
+    let linear = tracer.settings.linear_radiance;
     let t_final = march(tracer, &r, |h, trans| {
         let w = trans * h.alpha;
         let p = &tracer.prims[h.slot as usize];
@@ -126,7 +128,8 @@ fn trace_one(
             None => {
                 let c = sh_colour(&surfels.sh[i], &basis, ncoef);
                 for ch in 0..3 {
-                    o.radiance[ch] += w * c[ch].max(0.0);
+                    let col = c[ch].max(0.0);
+                    o.radiance[ch] += w * if linear { decode(col) } else { col };
                 }
             }
         }

@@ -48,6 +48,10 @@ pub struct TraceSettings {
     /// `Tracer::needs_rebuild` turns true once the refitted tree's SAH cost exceeds this
     /// multiple of its cost right after the build.
     pub rebuild_ratio: f32,
+    /// Decode each hit's SH colour (sRGB) to linear radiance before compositing, so the
+    /// payload is the light arriving along the ray (the PBR stages' indirect light), not an
+    /// sRGB picture: decoding a composite instead darkens partial hits (the EOTF is convex).
+    pub linear_radiance: bool,
 }
 
 impl Default for TraceSettings {
@@ -59,6 +63,7 @@ impl Default for TraceSettings {
             t_min: 1e-4,
             t_max: f32::INFINITY,
             rebuild_ratio: 1.5,
+            linear_radiance: false,
         }
     }
 }

@@ -117,7 +117,7 @@ pub fn trace_ref(s: &Surfels, ray: &Ray, settings: &TraceSettings, features: Opt
             None => {
                 let col = sh_ref(&s.sh[i], s.sh_degree, dh);
                 for c in 0..3 {
-                    out.radiance[c] += w * col[c];
+                    out.radiance[c] += w * if settings.linear_radiance { srgb_eotf(col[c]) } else { col[c] };
                 }
             }
         }
@@ -141,6 +141,11 @@ pub fn trace_ref(s: &Surfels, ray: &Ray, settings: &TraceSettings, features: Opt
 }
 
 /// SH colour max(Σ c_k Y_k(d) + 0.5, 0) in f64, basis written out independently.
+/// The sRGB EOTF in f64, written here independently of the tracer's.
+fn srgb_eotf(c: f64) -> f64 {
+    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+}
+
 fn sh_ref(c: &[[f32; 3]; 16], degree: u32, d: [f64; 3]) -> [f64; 3] {
     let [x, y, z] = d;
     let y_k = [

@@ -358,7 +358,12 @@ fn check(name: &str, analytic: f32, fd: f64) {
 }
 
 fn fd_check(seed: u64, two_sided: bool, grazing: bool, channels: usize) {
-    let (s, rays, settings) = fd_scene(seed, two_sided, grazing);
+    fd_check_with(seed, two_sided, grazing, channels, false);
+}
+
+fn fd_check_with(seed: u64, two_sided: bool, grazing: bool, channels: usize, linear: bool) {
+    let (s, rays, mut settings) = fd_scene(seed, two_sided, grazing);
+    settings.linear_radiance = linear;
     let mut rng = Pcg64::seed_from_u64(seed + 77);
     let feats: Vec<f32> = (0..s.len() * channels).map(|_| rng.random_range(-1.0..1.0f32)).collect();
     let fopt = (channels > 0).then_some((&feats[..], channels));
@@ -456,6 +461,22 @@ fn gradients_match_finite_differences() {
 fn gradients_match_finite_differences_two_sided_and_grazing() {
     fd_check(3, true, false, 0);
     fd_check(4, false, true, 0);
+}
+
+#[test]
+fn gradients_match_finite_differences_with_linear_radiance() {
+    fd_check_with(7, false, false, 0, true);
+    fd_check_with(8, true, true, 0, true);
+}
+
+#[test]
+fn linear_radiance_matches_brute_force() {
+    for seed in [21u64, 22] {
+        let s = random_scene(300, seed, 2);
+        let rays = random_rays(400, seed + 1, &s);
+        let settings = TraceSettings { linear_radiance: true, chunk: 4, ..Default::default() };
+        compare_with_reference(&s, &rays, &settings, None);
+    }
 }
 
 #[test]

@@ -60,9 +60,10 @@ pub fn sample_factor(cfg: &TrainConfig) -> usize {
     if cfg.env_sample_height == 0 { 1 } else { (cfg.env_height / cfg.env_sample_height).max(1) }
 }
 
-/// The tracer settings of the PBR stages (RadioGS: stop at T < 0.03, cull back faces).
+/// The tracer settings of the PBR stages (RadioGS: stop at T < 0.03, cull back faces;
+/// indirect light composited as linear radiance).
 pub fn trace_settings() -> TraceSettings {
-    TraceSettings::default()
+    TraceSettings { linear_radiance: true, ..TraceSettings::default() }
 }
 
 /// Everything an inverse run holds.

@@ -27,7 +27,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 500)]
     pub inverse_iters: u32,
     /// Finetune iterations per light when relighting.
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 150)]
     pub relight_iters: u32,
     /// Random seed.
     #[arg(long, default_value_t = 0)]

@@ -900,6 +900,19 @@ mod tests {
         assert!(worst_spec < 0.05, "prefiltered rel. error {worst_spec}");
     }
 
+    /// A random normal, view and roughness; every 5th view grazing, every 4th roughness near 0
+    /// and near 1.
+    fn shading_point(rg: &mut rand_pcg::Pcg64, case: usize) -> (V3, V3, f64) {
+        let n = unit(rg);
+        let wo = unit_in(rg, n, if case % 5 == 0 { 0.0 } else { 0.05 });
+        let r: f64 = match case % 4 {
+            0 => rg.random_range(0.001..0.05),
+            1 => rg.random_range(0.95..0.999),
+            _ => rg.random_range(0.05..0.95),
+        };
+        (n, wo, r)
+    }
+
     #[test]
     fn shade_backward_matches_finite_differences() {
         let env = random_env(64, 128, 8);
@@ -911,13 +924,7 @@ mod tests {
             dot(wch, add(d, s))
         };
         for case in 0..60 {
-            let n = unit(&mut rg);
-            let wo = unit_in(&mut rg, n, if case % 5 == 0 { 0.0 } else { 0.05 });
-            let r: f64 = match case % 4 {
-                0 => rg.random_range(0.001..0.05),
-                1 => rg.random_range(0.95..0.999),
-                _ => rg.random_range(0.05..0.95),
-            };
+            let (n, wo, r) = shading_point(&mut rg, case);
             let a: V3 = [rg.random(), rg.random(), rg.random()];
             let mut g = ss.zero_grads();
             let pg = ss.shade_backward(to32(a), r as f32, to32(n), to32(wo), to32(wch), &mut g);
@@ -949,13 +956,7 @@ mod tests {
         let mut rg = rng(13);
         let wch = [0.7, 1.1, -0.5];
         for case in 0..40 {
-            let n = unit(&mut rg);
-            let wo = unit_in(&mut rg, n, if case % 5 == 0 { 0.0 } else { 0.05 });
-            let r: f64 = match case % 4 {
-                0 => rg.random_range(0.001..0.05),
-                1 => rg.random_range(0.95..0.999),
-                _ => rg.random_range(0.05..0.95),
-            };
+            let (n, wo, r) = shading_point(&mut rg, case);
             let occ: f64 = if case % 3 == 0 { 0.0 } else { rg.random() };
             let fill: V3 = [rg.random(), rg.random(), rg.random()];
             let obj = |r: f64, n: V3, wo: V3| dot(wch, ss.specular_lobe(r, n, wo, occ, fill));

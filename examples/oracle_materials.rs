@@ -4,76 +4,42 @@
 //!
 //!     cargo run --release --example oracle_materials -- RUN DATA OUT
 
+#[path = "common/scene_readme.rs"]
+mod scene_readme;
+
+use anyhow::Context;
 use radiogs::surfels::{albedo_to_logit, logit};
 use std::path::PathBuf;
 
-fn sdf(obj: &serde_json::Value, p: [f32; 3]) -> f32 {
-    let loc: Vec<f32> = obj["location"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
-    let rz = obj["rotation_euler"][2].as_f64().unwrap() as f32;
-    let d = [p[0] - loc[0], p[1] - loc[1], p[2] - loc[2]];
-    // Into the object's frame (rotation about z only in these scenes).
-    let (s, c) = rz.sin_cos();
-    let q = [c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]];
-    match obj["type"].as_str().unwrap() {
-        "uv_sphere" => {
-            let r = obj["params"]["radius"].as_f64().unwrap() as f32;
-            (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt() - r
-        }
-        "box" => {
-            let h: Vec<f32> =
-                obj["params"]["half_extents"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
-            let e = [q[0].abs() - h[0], q[1].abs() - h[1], q[2].abs() - h[2]];
-            let out = (e[0].max(0.0).powi(2) + e[1].max(0.0).powi(2) + e[2].max(0.0).powi(2)).sqrt();
-            out + e[0].max(e[1]).max(e[2]).min(0.0)
-        }
-        "cylinder" => {
-            let r = obj["params"]["radius"].as_f64().unwrap() as f32;
-            let half = 0.5 * obj["params"]["depth"].as_f64().unwrap() as f32;
-            let e = [(q[0] * q[0] + q[1] * q[1]).sqrt() - r, q[2].abs() - half];
-            (e[0].max(0.0).powi(2) + e[1].max(0.0).powi(2)).sqrt() + e[0].max(e[1]).min(0.0)
-        }
-        t => panic!("object type {t} not handled"),
-    }
-}
-
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
+    if args.len() != 4 {
+        anyhow::bail!("usage: oracle_materials RUN DATA OUT");
+    }
     let (run, data, out) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]), PathBuf::from(&args[3]));
-    let readme: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data.join("README.json"))?)?;
-    let objects = readme["objects"].as_array().unwrap();
-    let materials = &readme["materials"];
+    let readme = scene_readme::load(&data)?;
+    let objects = &readme.objects;
+    anyhow::ensure!(!objects.is_empty(), "{}: README.json lists no objects", data.display());
     let mut s = radiogs::eval::load_run_surfels(&run)?;
     let mut counts = vec![0usize; objects.len()];
     for i in 0..s.len() {
-        let p = s.means[i];
-        let (k, _) =
-            objects.iter().enumerate().map(|(k, o)| (k, sdf(o, p).abs())).min_by(|a, b| a.1.total_cmp(&b.1)).unwrap();
+        let p = s.means[i].map(|x| x as f64);
+        let k = scene_readme::nearest(objects, p);
         counts[k] += 1;
-        let m = &materials[objects[k]["material"].as_str().unwrap()];
-        let f3 = |v: &serde_json::Value| -> Vec<f32> {
-            v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
-        };
-        let base: Vec<f32> = if let Some(ch) = m["base_color_linear"].get("checker_object_space") {
-            // Blender's checker texture on object coordinates (scale, |floor| parity per axis).
-            let loc = f3(&objects[k]["location"]);
-            let sc = ch["scale"].as_f64().unwrap() as f32;
-            let cell = |c: f32| (((c + 1e-6) * 0.999_999 * sc).floor() as i64).abs() % 2;
-            let (xi, yi, zi) = (cell(p[0] - loc[0]), cell(p[1] - loc[1]), cell(p[2] - loc[2]));
-            if (xi == yi) == (zi == 1) { f3(&ch["color1"]) } else { f3(&ch["color2"]) }
-        } else {
-            f3(&m["base_color_linear"])
-        };
-        s.albedo_logits[i] = [albedo_to_logit(base[0]), albedo_to_logit(base[1]), albedo_to_logit(base[2])];
-        s.roughness_logits[i] = logit(m["roughness"].as_f64().unwrap() as f32);
+        let m = &readme.materials[&objects[k].material];
+        let base = objects[k].base_colour(m, p);
+        s.albedo_logits[i] = base.map(|c| albedo_to_logit(c as f32));
+        s.roughness_logits[i] = logit(m.roughness as f32);
     }
     for (o, c) in objects.iter().zip(&counts) {
-        println!("{:20} {c}", o["object"].as_str().unwrap());
+        println!("{:20} {c}", o.object);
     }
     std::fs::create_dir_all(&out)?;
     radiogs::io::ply::write_ply(&out.join("point_cloud.ply"), &s)?;
     std::fs::copy(run.join("config.toml"), out.join("config.toml"))?;
-    let env_name = readme["environment"]["train_env"].as_str().unwrap();
-    let env = radiogs::envmap::EnvMap::load(&data.join("envmaps").join(format!("{env_name}.exr")))?;
+    let env_name = &readme.environment.train_env;
+    let env = radiogs::envmap::EnvMap::load(&data.join("envmaps").join(format!("{env_name}.exr")))
+        .with_context(|| format!("the training env {env_name} of {}", data.display()))?;
     let cfg = radiogs::eval::load_run_config(&run)?;
     let h = cfg.env_height;
     let env = env.resample(2 * h, h);

@@ -3,6 +3,10 @@
 //!
 //!     cargo run --release --example oracle_split -- RUN DATA [VIEWS]
 
+#[path = "common/scene_readme.rs"]
+mod scene_readme;
+
+use anyhow::Context;
 use radiogs::io::dataset::{Dataset, Split};
 use radiogs::io::image::{read_exr_channels, srgb_to_linear};
 use std::path::PathBuf;
@@ -10,8 +14,15 @@ use std::path::PathBuf;
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let (run, data) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
-    let nviews: usize = args.get(3).map(|s| s.parse().unwrap()).unwrap_or(4);
-    let mut scene = radiogs::pbr_scene::PbrScene::from_run(&run)?.expect("run has no envmap.exr");
+    if args.len() < 3 {
+        anyhow::bail!("usage: oracle_split RUN DATA [VIEWS]");
+    }
+    let nviews: usize = match args.get(3) {
+        Some(v) => v.parse().with_context(|| format!("VIEWS: {v} is not a count"))?,
+        None => 4,
+    };
+    let mut scene = radiogs::pbr_scene::PbrScene::from_run(&run)?
+        .with_context(|| format!("{}: no envmap.exr (run the inverse stage first)", run.display()))?;
     if let Ok(v) = std::env::var("ENV_ROT") {
         scene.env = scene.env.rotated_about_up(v.parse()?);
     }
@@ -71,7 +82,9 @@ fn main() -> anyhow::Result<()> {
     let mut tot = [[0.0f64; 3]; 7];
     for view in ds.views(Split::Test).iter().take(nviews) {
         let img = scene.render(&view.camera, [0.0; 3]);
-        let exr = view.pass_path(radiogs::io::dataset::Pass::Indirect).unwrap();
+        let exr = view
+            .pass_path(radiogs::io::dataset::Pass::Indirect)
+            .with_context(|| format!("{}: no indirect.exr pass", view.camera.name))?;
         let gt_ind = read_exr_channels(&exr, &["R", "G", "B", "A"])?;
         let gt_dir = read_exr_channels(&exr, &["direct.R", "direct.G", "direct.B"])?;
         let gt = view.load_image()?;
@@ -160,9 +173,7 @@ fn main() -> anyhow::Result<()> {
 
 /// Replace the cache's traced visibility by exact ray casts against the dataset's objects.
 fn analytic_visibility(scene: &mut radiogs::pbr_scene::PbrScene, data: &std::path::Path) -> anyhow::Result<()> {
-    let readme: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data.join("README.json"))?)?;
-    let objects = readme["objects"].as_array().unwrap().clone();
-    let f3 = |v: &serde_json::Value| -> [f64; 3] { [0, 1, 2].map(|k| v[k].as_f64().unwrap()) };
+    let readme = scene_readme::load(data)?;
     let s = scene.cache.samples;
     let offset = 0.01f64;
     let n = scene.surfels.len();
@@ -173,44 +184,7 @@ fn analytic_visibility(scene: &mut radiogs::pbr_scene::PbrScene, data: &std::pat
         let o = [0, 1, 2].map(|k| m[k] as f64 + offset * nn[k] as f64);
         for k in i * s..(i + 1) * s {
             let d = scene.cache.dirs[k].map(|x| x as f64);
-            let mut hit = false;
-            for obj in &objects {
-                let loc = f3(&obj["location"]);
-                let rz = obj["rotation_euler"][2].as_f64().unwrap();
-                let (sn, c) = rz.sin_cos();
-                let rel = [o[0] - loc[0], o[1] - loc[1], o[2] - loc[2]];
-                let ro = [c * rel[0] + sn * rel[1], -sn * rel[0] + c * rel[1], rel[2]];
-                let rd = [c * d[0] + sn * d[1], -sn * d[0] + c * d[1], d[2]];
-                let t_hit = match obj["type"].as_str().unwrap() {
-                    "uv_sphere" => {
-                        let r = obj["params"]["radius"].as_f64().unwrap();
-                        let b = ro[0] * rd[0] + ro[1] * rd[1] + ro[2] * rd[2];
-                        let cc = ro[0] * ro[0] + ro[1] * ro[1] + ro[2] * ro[2] - r * r;
-                        let disc = b * b - cc;
-                        if disc < 0.0 || cc < 0.0 { None } else { Some(-b - disc.sqrt()) }
-                    }
-                    _ => {
-                        let h = f3(&obj["params"]["half_extents"]);
-                        let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
-                        for a in 0..3 {
-                            let inv = 1.0 / rd[a];
-                            let (mut ta, mut tb) = ((-h[a] - ro[a]) * inv, (h[a] - ro[a]) * inv);
-                            if ta > tb {
-                                std::mem::swap(&mut ta, &mut tb);
-                            }
-                            t0 = t0.max(ta);
-                            t1 = t1.min(tb);
-                        }
-                        if t0 <= t1 && t0 > 0.0 { Some(t0) } else { None }
-                    }
-                };
-                if let Some(t) = t_hit
-                    && t > 0.0
-                {
-                    hit = true;
-                    break;
-                }
-            }
+            let hit = readme.objects.iter().any(|obj| obj.ray_entry(o, d).is_some());
             before += scene.cache.visibility[k] as f64;
             let v = if hit { 0.0 } else { 1.0 };
             after += v;

@@ -319,6 +319,41 @@ impl SurfelShading {
     }
 }
 
+impl SurfelShading {
+    /// Backward of the split-sum specular lobe added by [`compute`](Self::compute): for the
+    /// upstream gradient `v_pbr` on each active surfel's PBR colour, adds ∂/∂roughness,
+    /// ∂/∂normal and ∂/∂view into `sub` (indexed like `active`) and writes the prefiltered-map
+    /// gradients into `grads` (zeroed first; send them on with `SplitSum::backward_to_env`).
+    pub fn split_sum_backward(
+        &self,
+        ss: &SplitSum,
+        mats: &MaterialView,
+        v_pbr: &[[f32; 3]],
+        sub: &mut SubsetGrads,
+        grads: &mut SplitSumGrads,
+    ) {
+        use crate::shade::to64;
+        if grads.v_levels.len() != ss.levels.len()
+            || grads.v_levels.iter().zip(&ss.levels).any(|(g, l)| g.len() != l.texels.len())
+        {
+            *grads = ss.zero_grads();
+        }
+        grads.v_levels.iter_mut().flatten().for_each(|t| *t = [0.0; 3]);
+        grads.v_irradiance.iter_mut().for_each(|t| *t = [0.0; 3]);
+        for (k, &i) in self.active.iter().enumerate() {
+            let i = i as usize;
+            let (r, n, wo) = (mats.roughness[i] as f64, to64(mats.normal[i]), to64(self.view[i]));
+            let (occ, fill) = (self.spec_occlusion[k] as f64, to64(self.spec_fill[k]));
+            let (v_r, v_n, v_wo) = ss.specular_lobe_backward(r, n, wo, occ, fill, to64(v_pbr[k]), grads);
+            sub.v_roughness[k] += v_r as f32;
+            for c in 0..3 {
+                sub.v_normal[k][c] += v_n[c] as f32;
+                sub.v_view[k][c] += v_wo[c] as f32;
+            }
+        }
+    }
+}
+
 /// Losses of one iteration (unweighted).
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct InverseLosses {
@@ -554,27 +589,8 @@ fn iterate(
     shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
         .expect("sized above");
     if let Some(ss) = split_sum {
-        // The split-sum specular lobe: same upstream gradient as the rest of the PBR colour.
-        use crate::shade::to64;
         let grads = sc.ss_grads.get_or_insert_with(|| ss.zero_grads());
-        if grads.v_levels.len() != ss.levels.len()
-            || grads.v_levels.iter().zip(&ss.levels).any(|(g, l)| g.len() != l.texels.len())
-        {
-            *grads = ss.zero_grads();
-        }
-        grads.v_levels.iter_mut().flatten().for_each(|t| *t = [0.0; 3]);
-        grads.v_irradiance.iter_mut().for_each(|t| *t = [0.0; 3]);
-        for (k, &i) in sh.active.iter().enumerate() {
-            let i = i as usize;
-            let (r, n, wo) = (sc.mats.roughness[i] as f64, to64(sc.mats.normal[i]), to64(sh.view[i]));
-            let (occ, fill) = (sh.spec_occlusion[k] as f64, to64(sh.spec_fill[k]));
-            let (v_r, v_n, v_wo) = ss.specular_lobe_backward(r, n, wo, occ, fill, to64(sc.v_sub_pbr[k]), grads);
-            sc.sub.v_roughness[k] += v_r as f32;
-            for c in 0..3 {
-                sc.sub.v_normal[k][c] += v_n[c] as f32;
-                sc.sub.v_view[k][c] += v_wo[c] as f32;
-            }
-        }
+        sh.split_sum_backward(ss, &sc.mats, &sc.v_sub_pbr, &mut sc.sub, grads);
     }
     let eye = cam.position().to_array();
     for (k, &i) in sh.active.iter().enumerate() {
@@ -828,6 +844,107 @@ pub fn run_until(
 mod tests {
     use super::*;
     use crate::shade::splitsum::BrdfLut;
+
+    /// The split-sum PBR colour of `SurfelShading` (Lambert Monte Carlo + occluded split-sum
+    /// lobe) against finite differences of its backward (`shade_subset_backward` with the
+    /// Lambert-only inputs + `split_sum_backward`), per roughness, normal and env texel. The
+    /// normal check runs on lone surfels (V = 1, no fill), where the lobe's occlusion does not
+    /// depend on the normal (the backward holds occlusion and fill constant).
+    #[test]
+    fn split_sum_shading_matches_finite_differences() {
+        use rand::SeedableRng;
+        for occluded in [false, true] {
+            let mut rg = rand_pcg::Pcg64::seed_from_u64(if occluded { 7 } else { 8 });
+            let mut s = Surfels::default();
+            for k in 0..4 {
+                let spread = if occluded { 0.15 } else { 3.0 };
+                let m = [rg.random_range(-spread..spread), rg.random_range(-spread..spread), 0.1 * k as f32];
+                let n = [rg.random_range(-0.4..0.4f32), rg.random_range(-0.4..0.4f32), 1.0];
+                s.push(m, [0.3, 0.2], crate::surfels::quat_with_normal(n), 0.7, [0.5; 3], [0.5; 3], 0.5);
+            }
+            for i in 0..s.len() {
+                s.albedo_logits[i] = [rg.random_range(-1.0..1.0); 3];
+                // Away from the prefiltered levels (0.2 steps) and the LUT nodes (i/31): kinks.
+                s.roughness_logits[i] = logit([0.07, 0.33, 0.55, 0.93][i]);
+            }
+            let mut env = EnvMap::constant(32, 16, [0.0; 3]);
+            for t in env.texels.iter_mut() {
+                *t = [rg.random_range(0.2..2.0), rg.random_range(0.2..2.0), rg.random_range(0.2..2.0)];
+            }
+            let tracer = Tracer::build(&s, &trace_settings());
+            let mut cache = IncidentCache::default();
+            cache.refresh(&tracer, &s, 16, 1e-3, 3);
+            if occluded {
+                assert!(cache.visibility.iter().any(|&v| v < 0.9), "the test needs occlusion");
+            } else {
+                assert!(cache.visibility.iter().all(|&v| v == 1.0));
+            }
+            let mut mats = MaterialView::default();
+            mats.update(&s);
+            let cam = Camera::look_at("fd", glam::Vec3::new(0.5, -1.0, 6.0), glam::Vec3::ZERO, 16, 16, 1.2);
+            let v_pbr: Vec<[f32; 3]> =
+                (0..s.len()).map(|_| [rg.random_range(-1.0..1.0), rg.random(), rg.random_range(-1.0..1.0)]).collect();
+            let objective = |m: &MaterialView, e: &EnvMap| -> f64 {
+                let ss = SplitSum::new(e).unwrap();
+                let mut sh = SurfelShading::default();
+                sh.compute(&s, m, &cache, e, Some(&ss), &cam, TRAIN_CHANNELS);
+                sh.active
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &i)| {
+                        (0..3)
+                            .map(|c| sh.features[i as usize * TRAIN_CHANNELS + c] as f64 * v_pbr[k][c] as f64)
+                            .sum::<f64>()
+                    })
+                    .sum()
+            };
+            // Analytic gradients.
+            let ss = SplitSum::new(&env).unwrap();
+            let mut sh = SurfelShading::default();
+            sh.compute(&s, &mats, &cache, &env, Some(&ss), &cam, TRAIN_CHANNELS);
+            assert!(sh.active.len() >= 3, "{} active", sh.active.len());
+            let v_sub: Vec<[f32; 3]> = (0..sh.active.len()).map(|k| v_pbr[k]).collect();
+            let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &sh.view);
+            inp.specular = false;
+            let mut sub = SubsetGrads::default();
+            shade_subset_backward(&inp, &env, &sh.active, &v_sub, &v_sub, Detach::default(), &mut sub).unwrap();
+            let mut grads = ss.zero_grads();
+            sh.split_sum_backward(&ss, &mats, &v_sub, &mut sub, &mut grads);
+            let mut v_env = sub.v_env.clone();
+            ss.backward_to_env(&grads, &mut v_env);
+            let h = 1e-3f32;
+            let close = |a: f32, fd: f64, what: &str| {
+                assert!((a as f64 - fd).abs() < 2e-2 * fd.abs() + 2e-3, "{what}: analytic {a} vs fd {fd}");
+            };
+            for (k, &i) in sh.active.iter().enumerate() {
+                let i = i as usize;
+                let (mut a, mut b) = (mats.clone(), mats.clone());
+                a.roughness[i] += h;
+                b.roughness[i] -= h;
+                let fd = (objective(&a, &env) - objective(&b, &env)) / (2.0 * h as f64);
+                close(sub.v_roughness[k], fd, &format!("occluded {occluded}: roughness[{i}]"));
+                if !occluded {
+                    for c in 0..3 {
+                        let (mut a, mut b) = (mats.clone(), mats.clone());
+                        a.normal[i][c] += h;
+                        b.normal[i][c] -= h;
+                        let fd = (objective(&a, &env) - objective(&b, &env)) / (2.0 * h as f64);
+                        close(sub.v_normal[k][c], fd, &format!("normal[{i}][{c}]"));
+                    }
+                }
+            }
+            // Env texels (linear): unit steps on the texels with the largest gradients.
+            let base = objective(&mats, &env);
+            let mut order: Vec<usize> = (0..v_env.len()).collect();
+            order.sort_by(|&a, &b| v_env[b][0].abs().total_cmp(&v_env[a][0].abs()));
+            for &t in &order[..8] {
+                let mut e2 = env.clone();
+                e2.texels[t][0] += 1.0;
+                let fd = objective(&mats, &e2) - base;
+                close(v_env[t][0], fd, &format!("occluded {occluded}: env texel {t}"));
+            }
+        }
+    }
 
     /// Furnace for the split-sum specular path: a lone surfel under a constant env L has
     /// V = 1 and no indirect light, so its PBR colour is a·L·(10° floor coverage) from the

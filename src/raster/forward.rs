@@ -19,7 +19,8 @@
 //!
 //! Parallel decomposition: rayon over rows of tiles; inside a tile, pixel by pixel over the
 //! tile's list (copied into a local structure of arrays), 16 candidates at a time (f32x16);
-//! the window bookkeeping is scalar, per hit. Nothing per pixel is saved: the
+//! the window is per hit: for K ≤ 16 two AVX-512 registers (branchless insert and pop),
+//! otherwise a ring buffer. Nothing per pixel is saved: the
 //! backward pass re-runs `composite_pixel`.
 
 use super::project::{self, Projected};
@@ -199,10 +200,156 @@ pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alph
     mask
 }
 
+/// The per-pixel window of (z, slot) entries sorted by ascending z; the hits themselves stay
+/// in the caller's pool at their slot.
+pub(crate) trait Window {
+    fn len(&self) -> usize;
+    /// Slot of the nearest entry (len > 0).
+    fn front_slot(&self) -> usize;
+    /// Drop the nearest entry (len > 0).
+    fn pop_front(&mut self);
+    /// Insert after every entry with z' ≤ z (earlier arrivals win ties). z is never NaN: a hit
+    /// needs z ≥ near.
+    fn insert(&mut self, z: f32, slot: u8);
+}
+
+/// Up to 32 entries in a ring buffer sorted from `head`; insertion shifts 5 bytes per entry.
+/// Candidates arrive in roughly increasing depth, so most insertions append.
+pub(crate) struct RingWindow {
+    wz: [f32; RING],
+    ws: [u8; RING],
+    head: usize,
+    len: usize,
+}
+
+impl RingWindow {
+    fn new() -> Self {
+        RingWindow { wz: [0.0; RING], ws: [0; RING], head: 0, len: 0 }
+    }
+}
+
+impl Window for RingWindow {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        self.len
+    }
+    #[inline(always)]
+    fn front_slot(&self) -> usize {
+        self.ws[self.head] as usize
+    }
+    #[inline(always)]
+    fn pop_front(&mut self) {
+        self.head = (self.head + 1) & (RING - 1);
+        self.len -= 1;
+    }
+    #[inline(always)]
+    fn insert(&mut self, z: f32, slot: u8) {
+        const M: usize = RING - 1;
+        let (head, wz, ws) = (self.head, &mut self.wz, &mut self.ws);
+        let mut pos = self.len;
+        while pos > 0 && wz[(head + pos - 1) & M] > z {
+            wz[(head + pos) & M] = wz[(head + pos - 1) & M];
+            ws[(head + pos) & M] = ws[(head + pos - 1) & M];
+            pos -= 1;
+        }
+        wz[(head + pos) & M] = z;
+        ws[(head + pos) & M] = slot;
+        self.len += 1;
+    }
+}
+
+/// Up to 16 entries held in two AVX-512 registers: the insertion point is one masked compare
+/// and a popcount, the shift one lane permute and two masked moves, so an unpredictable
+/// insertion depth costs no branch misses (the ring's shift loop mispredicts on every
+/// out-of-order hit).
+#[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+pub(crate) struct RegWindow {
+    z: std::arch::x86_64::__m512,
+    s: std::arch::x86_64::__m512i,
+    len: usize,
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+impl RegWindow {
+    #[inline(always)]
+    fn new() -> Self {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe {
+            RegWindow { z: _mm512_set1_ps(f32::INFINITY), s: _mm512_setzero_si512(), len: 0 }
+        }
+    }
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+impl Window for RegWindow {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        self.len
+    }
+    #[inline(always)]
+    fn front_slot(&self) -> usize {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe {
+            _mm_cvtsi128_si32(_mm512_castsi512_si128(self.s)) as usize
+        }
+    }
+    #[inline(always)]
+    fn pop_front(&mut self) {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe {
+            let left = _mm512_setr_epi32(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 15);
+            self.z = _mm512_permutexvar_ps(left, self.z);
+            self.s = _mm512_permutexvar_epi32(left, self.s);
+            self.len -= 1;
+        }
+    }
+    #[inline(always)]
+    fn insert(&mut self, z: f32, slot: u8) {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe {
+            let zv = _mm512_set1_ps(z);
+            let live: u16 = ((1u32 << self.len) - 1) as u16;
+            let greater = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(live, self.z, zv);
+            let pos = self.len - greater.count_ones() as usize;
+            let here: u16 = 1 << pos;
+            let keep: u16 = here.wrapping_sub(1);
+            let right = _mm512_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14);
+            let zs = _mm512_mask_mov_ps(_mm512_permutexvar_ps(right, self.z), here, zv);
+            self.z = _mm512_mask_mov_ps(zs, keep, self.z);
+            let ss = _mm512_mask_mov_epi32(_mm512_permutexvar_epi32(right, self.s), here, _mm512_set1_epi32(slot as i32));
+            self.s = _mm512_mask_mov_epi32(ss, keep, self.s);
+            self.len += 1;
+        }
+    }
+}
+
 /// Composite one pixel through the sorted window, calling `blend(hit, T_before)` for every
 /// blended hit in blend order. Returns (T_final, candidates evaluated).
-#[inline]
+#[inline(always)]
 pub(crate) fn composite_pixel(
+    td: &TileData,
+    px: f32,
+    py: f32,
+    s: &RasterSettings,
+    k: usize,
+    win: &mut [Hit; RING],
+    blend: impl FnMut(&Hit, f32),
+) -> (f32, u32) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    if k <= 16 {
+        return composite_with(RegWindow::new(), td, px, py, s, k, win, blend);
+    }
+    composite_with(RingWindow::new(), td, px, py, s, k, win, blend)
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn composite_with<W: Window>(
+    mut window: W,
     td: &TileData,
     px: f32,
     py: f32,
@@ -212,17 +359,8 @@ pub(crate) fn composite_pixel(
     mut blend: impl FnMut(&Hit, f32),
 ) -> (f32, u32) {
     let mut t = 1.0f32;
-    // The window is a ring buffer of (z, slot) sorted by ascending z from `head`; the hits
-    // themselves stay in `win` at their slot (a bitmask tracks used slots), so the insertion
-    // shift moves 5 bytes per entry, not a whole `Hit`. Candidates arrive in roughly
-    // increasing depth, so most insertions append without shifting, and the nearest entry
-    // pops from the front.
-    let mut wz = [0.0f32; RING];
-    let mut ws = [0u8; RING];
+    // A bitmask tracks the pool slots in use; the window orders (z, slot) pairs.
     let mut used = 0u32;
-    let mut head = 0usize;
-    let mut len = 0usize;
-    const M: usize = RING - 1;
     let t_min = s.transmittance_min;
     let mut lanes = Lanes::default();
     let mut j0 = 0;
@@ -231,8 +369,8 @@ pub(crate) fn composite_pixel(
         while m != 0 {
             let l = m.trailing_zeros() as usize;
             m &= m - 1;
-            if len == k {
-                let slot = ws[head] as usize;
+            if window.len() == k {
+                let slot = window.front_slot();
                 let h = &win[slot];
                 let next = t * (1.0 - h.alpha);
                 if next < t_min {
@@ -241,8 +379,7 @@ pub(crate) fn composite_pixel(
                 blend(h, t);
                 t = next;
                 used &= !(1u32 << slot);
-                head = (head + 1) & M;
-                len -= 1;
+                window.pop_front();
             }
             let z = lanes.z[l];
             // A free slot exists: len < k ≤ 32 entries are in use.
@@ -258,29 +395,19 @@ pub(crate) fn composite_pixel(
                 is3d: lanes.is3d >> l & 1 != 0,
                 clamped: lanes.clamped >> l & 1 != 0,
             };
-            // Entries with z ≤ hit.z (earlier arrivals win ties) stay in front of it.
-            let mut pos = len;
-            while pos > 0 && wz[(head + pos - 1) & M] > z {
-                wz[(head + pos) & M] = wz[(head + pos - 1) & M];
-                ws[(head + pos) & M] = ws[(head + pos - 1) & M];
-                pos -= 1;
-            }
-            wz[(head + pos) & M] = z;
-            ws[(head + pos) & M] = slot as u8;
-            len += 1;
+            window.insert(z, slot as u8);
         }
         j0 += 16;
     }
-    while len > 0 {
-        let h = &win[ws[head] as usize];
+    while window.len() > 0 {
+        let h = &win[window.front_slot()];
         let next = t * (1.0 - h.alpha);
         if next < t_min {
             break;
         }
         blend(h, t);
         t = next;
-        head = (head + 1) & M;
-        len -= 1;
+        window.pop_front();
     }
     (t, td.n as u32)
 }
@@ -496,4 +623,45 @@ pub fn sorting_error(state: &ForwardState, camera: &Camera, settings: &RasterSet
         .collect();
     let tot = sums.iter().fold([0.0f64; 4], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]);
     (tot[0] / tot[1].max(1e-30), tot[2] / tot[3].max(1.0))
+}
+
+#[cfg(test)]
+mod window_tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// The register window keeps exactly the ring window's order: random inserts (with ties)
+    /// and pops, compared entry by entry after every operation.
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    #[test]
+    fn register_window_matches_ring_window() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        for k in [1usize, 2, 5, 8, 16] {
+            let (mut ring, mut reg) = (RingWindow::new(), RegWindow::new());
+            let mut slot = 0u8;
+            for _ in 0..2000 {
+                if ring.len() == k || (ring.len() > 0 && rng.random::<f32>() < 0.3) {
+                    assert_eq!(ring.front_slot(), reg.front_slot());
+                    ring.pop_front();
+                    reg.pop_front();
+                } else {
+                    let z = match rng.random_range(0..10) {
+                        0..3 => 0.5, // ties
+                        _ => rng.random::<f32>(),
+                    };
+                    slot = slot.wrapping_add(1) % 32;
+                    ring.insert(z, slot);
+                    reg.insert(z, slot);
+                }
+                assert_eq!(ring.len(), reg.len());
+                // Compare the whole order by draining copies.
+                let (mut a, mut b) = (RingWindow { ..ring }, RegWindow { ..reg });
+                while a.len() > 0 {
+                    assert_eq!(a.front_slot(), b.front_slot(), "k = {k}");
+                    a.pop_front();
+                    b.pop_front();
+                }
+            }
+        }
+    }
 }

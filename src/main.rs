@@ -38,7 +38,28 @@ enum Command {
     Info(info::InfoArgs),
 }
 
+/// Keep freed memory in the process (glibc): every rendered view allocates and frees image-
+/// and pair-sized buffers of a few MiB, and returning them to the kernel each time cost ~10 %
+/// of a training iteration in page faults and TLB-shootdown interrupts (perf, BENCHMARKS.md).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn keep_freed_memory() {
+    unsafe extern "C" {
+        fn mallopt(param: i32, value: i32) -> i32;
+    }
+    const M_TRIM_THRESHOLD: i32 = -1;
+    const M_MMAP_THRESHOLD: i32 = -3;
+    // SAFETY: mallopt only changes allocator tuning; called before any other thread exists.
+    unsafe {
+        mallopt(M_MMAP_THRESHOLD, 32 << 20);
+        mallopt(M_TRIM_THRESHOLD, i32::MAX);
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn keep_freed_memory() {}
+
 fn main() {
+    keep_freed_memory();
     tracing_subscriber::fmt().with_writer(std::io::stderr).with_target(false).init();
     let matches = Cli::command().get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());

@@ -205,6 +205,11 @@ pub struct TrainConfig {
     /// Learning rate of the env map's log radiance.
     #[arg(long, default_value_t = 0.01)]
     pub lr_env: f32,
+    /// Light first: for this many iterations at the start of the inverse stage albedo and
+    /// roughness are frozen at their fresh values, so that the env (not per-surfel albedo)
+    /// explains the shading that varies with the normal and the shadows (0 = off, as published).
+    #[arg(long, default_value_t = 0)]
+    pub light_warmup: u32,
     /// Env map height H (width 2H) [64].
     #[arg(long, default_value_t = 64)]
     pub env_height: usize,

@@ -759,6 +759,11 @@ pub fn run_until(
             anyhow::bail!("inverse iteration {it}: the loss is {} (diverged); lower the learning rates", last.total);
         }
         let t_opt = Instant::now();
+        if it <= cfg.light_warmup {
+            // Light first: a zero gradient leaves Adam's moments (and so the parameter) at rest.
+            v_surfels.albedo_logits.fill([0.0; 3]);
+            v_surfels.roughness_logits.fill(0.0);
+        }
         state.adam.step(&mut state.surfels, &v_surfels);
         state.env_adam.step(&mut state.env_log, &sc.v_env_log);
         times.optimiser += t_opt.elapsed().as_secs_f64();

@@ -200,31 +200,37 @@ pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alph
     mask
 }
 
-/// The per-pixel window of (z, slot) entries sorted by ascending z; the hits themselves stay
-/// in the caller's pool at their slot.
+/// The per-pixel window of (z, slot, α) entries sorted by ascending z. The slot is the
+/// caller's: an index into a pool of full hit records (backward), or the candidate's index in
+/// the tile list (forward, which needs nothing else of a hit: no pool to fill).
 pub(crate) trait Window {
     fn len(&self) -> usize;
     /// Slot of the nearest entry (len > 0).
     fn front_slot(&self) -> usize;
+    /// z of the nearest entry (len > 0).
+    fn front_z(&self) -> f32;
+    /// α of the nearest entry (len > 0).
+    fn front_alpha(&self) -> f32;
     /// Drop the nearest entry (len > 0).
     fn pop_front(&mut self);
     /// Insert after every entry with z' ≤ z (earlier arrivals win ties). z is never NaN: a hit
     /// needs z ≥ near.
-    fn insert(&mut self, z: f32, slot: u8);
+    fn insert(&mut self, z: f32, slot: u32, alpha: f32);
 }
 
-/// Up to 32 entries in a ring buffer sorted from `head`; insertion shifts 5 bytes per entry.
+/// Up to 32 entries in a ring buffer sorted from `head`; insertion shifts 12 bytes per entry.
 /// Candidates arrive in roughly increasing depth, so most insertions append.
 pub(crate) struct RingWindow {
     wz: [f32; RING],
-    ws: [u8; RING],
+    ws: [u32; RING],
+    wa: [f32; RING],
     head: usize,
     len: usize,
 }
 
 impl RingWindow {
     fn new() -> Self {
-        RingWindow { wz: [0.0; RING], ws: [0; RING], head: 0, len: 0 }
+        RingWindow { wz: [0.0; RING], ws: [0; RING], wa: [0.0; RING], head: 0, len: 0 }
     }
 }
 
@@ -238,34 +244,45 @@ impl Window for RingWindow {
         self.ws[self.head] as usize
     }
     #[inline(always)]
+    fn front_z(&self) -> f32 {
+        self.wz[self.head]
+    }
+    #[inline(always)]
+    fn front_alpha(&self) -> f32 {
+        self.wa[self.head]
+    }
+    #[inline(always)]
     fn pop_front(&mut self) {
         self.head = (self.head + 1) & (RING - 1);
         self.len -= 1;
     }
     #[inline(always)]
-    fn insert(&mut self, z: f32, slot: u8) {
+    fn insert(&mut self, z: f32, slot: u32, alpha: f32) {
         const M: usize = RING - 1;
-        let (head, wz, ws) = (self.head, &mut self.wz, &mut self.ws);
+        let (head, wz, ws, wa) = (self.head, &mut self.wz, &mut self.ws, &mut self.wa);
         let mut pos = self.len;
         while pos > 0 && wz[(head + pos - 1) & M] > z {
             wz[(head + pos) & M] = wz[(head + pos - 1) & M];
             ws[(head + pos) & M] = ws[(head + pos - 1) & M];
+            wa[(head + pos) & M] = wa[(head + pos - 1) & M];
             pos -= 1;
         }
         wz[(head + pos) & M] = z;
         ws[(head + pos) & M] = slot;
+        wa[(head + pos) & M] = alpha;
         self.len += 1;
     }
 }
 
-/// Up to 16 entries held in two AVX-512 registers: the insertion point is one masked compare
-/// and a popcount, the shift one lane permute and two masked moves, so an unpredictable
+/// Up to 16 entries held in three AVX-512 registers: the insertion point is one masked compare
+/// and a popcount, the shift one lane permute and two masked moves per register, so an unpredictable
 /// insertion depth costs no branch misses (the ring's shift loop mispredicts on every
 /// out-of-order hit).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
 pub(crate) struct RegWindow {
     z: std::arch::x86_64::__m512,
     s: std::arch::x86_64::__m512i,
+    a: std::arch::x86_64::__m512,
     len: usize,
 }
 
@@ -276,7 +293,12 @@ impl RegWindow {
         use std::arch::x86_64::*;
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
-            RegWindow { z: _mm512_set1_ps(f32::INFINITY), s: _mm512_setzero_si512(), len: 0 }
+            RegWindow {
+                z: _mm512_set1_ps(f32::INFINITY),
+                s: _mm512_setzero_si512(),
+                a: _mm512_setzero_ps(),
+                len: 0,
+            }
         }
     }
 }
@@ -292,8 +314,20 @@ impl Window for RegWindow {
         use std::arch::x86_64::*;
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
-            _mm_cvtsi128_si32(_mm512_castsi512_si128(self.s)) as usize
+            _mm_cvtsi128_si32(_mm512_castsi512_si128(self.s)) as u32 as usize
         }
+    }
+    #[inline(always)]
+    fn front_z(&self) -> f32 {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe { _mm512_cvtss_f32(self.z) }
+    }
+    #[inline(always)]
+    fn front_alpha(&self) -> f32 {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe { _mm512_cvtss_f32(self.a) }
     }
     #[inline(always)]
     fn pop_front(&mut self) {
@@ -303,11 +337,12 @@ impl Window for RegWindow {
             let left = _mm512_setr_epi32(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 15);
             self.z = _mm512_permutexvar_ps(left, self.z);
             self.s = _mm512_permutexvar_epi32(left, self.s);
+            self.a = _mm512_permutexvar_ps(left, self.a);
             self.len -= 1;
         }
     }
     #[inline(always)]
-    fn insert(&mut self, z: f32, slot: u8) {
+    fn insert(&mut self, z: f32, slot: u32, alpha: f32) {
         use std::arch::x86_64::*;
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
@@ -322,6 +357,8 @@ impl Window for RegWindow {
             self.z = _mm512_mask_mov_ps(zs, keep, self.z);
             let ss = _mm512_mask_mov_epi32(_mm512_permutexvar_epi32(right, self.s), here, _mm512_set1_epi32(slot as i32));
             self.s = _mm512_mask_mov_epi32(ss, keep, self.s);
+            let sa = _mm512_mask_mov_ps(_mm512_permutexvar_ps(right, self.a), here, _mm512_set1_ps(alpha));
+            self.a = _mm512_mask_mov_ps(sa, keep, self.a);
             self.len += 1;
         }
     }
@@ -370,24 +407,23 @@ fn composite_with<W: Window>(
             let l = m.trailing_zeros() as usize;
             m &= m - 1;
             if window.len() == k {
-                let slot = window.front_slot();
-                let h = &win[slot];
-                let next = t * (1.0 - h.alpha);
+                let next = t * (1.0 - window.front_alpha());
                 if next < t_min {
                     return (t, (j0 + l + 1) as u32);
                 }
-                blend(h, t);
+                let slot = window.front_slot();
+                blend(&win[slot], t);
                 t = next;
                 used &= !(1u32 << slot);
                 window.pop_front();
             }
-            let z = lanes.z[l];
+            let (z, alpha) = (lanes.z[l], lanes.alpha[l]);
             // A free slot exists: len < k ≤ 32 entries are in use.
             let slot = (!used).trailing_zeros() as usize;
             used |= 1u32 << slot;
             win[slot] = Hit {
                 z,
-                alpha: lanes.alpha[l],
+                alpha,
                 g: lanes.g[l],
                 u: lanes.u[l],
                 v: lanes.v[l],
@@ -395,17 +431,81 @@ fn composite_with<W: Window>(
                 is3d: lanes.is3d >> l & 1 != 0,
                 clamped: lanes.clamped >> l & 1 != 0,
             };
-            window.insert(z, slot as u8);
+            window.insert(z, slot as u32, alpha);
         }
         j0 += 16;
     }
     while window.len() > 0 {
-        let h = &win[window.front_slot()];
-        let next = t * (1.0 - h.alpha);
+        let next = t * (1.0 - window.front_alpha());
         if next < t_min {
             break;
         }
-        blend(h, t);
+        blend(&win[window.front_slot()], t);
+        t = next;
+        window.pop_front();
+    }
+    (t, td.n as u32)
+}
+
+/// The forward's compositor: the same decisions as `composite_pixel` (same evaluation, window
+/// order and stops), but the window carries the candidate index and α, so no hit record is
+/// built; `blend(li, z, α, T_before)`. Returns (T_final, candidates evaluated).
+#[inline(always)]
+pub(crate) fn composite_pixel_forward(
+    td: &TileData,
+    px: f32,
+    py: f32,
+    s: &RasterSettings,
+    k: usize,
+    blend: impl FnMut(usize, f32, f32, f32),
+) -> (f32, u32) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    if k <= 16 {
+        return composite_forward_with(RegWindow::new(), td, px, py, s, k, blend);
+    }
+    composite_forward_with(RingWindow::new(), td, px, py, s, k, blend)
+}
+
+#[inline(always)]
+fn composite_forward_with<W: Window>(
+    mut window: W,
+    td: &TileData,
+    px: f32,
+    py: f32,
+    s: &RasterSettings,
+    k: usize,
+    mut blend: impl FnMut(usize, f32, f32, f32),
+) -> (f32, u32) {
+    let mut t = 1.0f32;
+    let t_min = s.transmittance_min;
+    let mut lanes = Lanes::default();
+    let mut j0 = 0;
+    while j0 < td.n {
+        let mut m = eval16(td, j0, px, py, s.near, s.alpha_min, &mut lanes);
+        while m != 0 {
+            let l = m.trailing_zeros() as usize;
+            m &= m - 1;
+            if window.len() == k {
+                let alpha = window.front_alpha();
+                let next = t * (1.0 - alpha);
+                if next < t_min {
+                    return (t, (j0 + l + 1) as u32);
+                }
+                blend(window.front_slot(), window.front_z(), alpha, t);
+                t = next;
+                window.pop_front();
+            }
+            window.insert(lanes.z[l], (j0 + l) as u32, lanes.alpha[l]);
+        }
+        j0 += 16;
+    }
+    while window.len() > 0 {
+        let alpha = window.front_alpha();
+        let next = t * (1.0 - alpha);
+        if next < t_min {
+            break;
+        }
+        blend(window.front_slot(), window.front_z(), alpha, t);
         t = next;
         window.pop_front();
     }
@@ -506,7 +606,6 @@ fn render_tile_row(
     let k = s.k();
     let o = s.outputs;
     let nch = features.map_or(0, |f| f.channels);
-    let mut win = [Hit::default(); RING];
     let mut evals = 0u64;
     let y0 = ty * TILE;
     let y1 = (y0 + TILE).min(h);
@@ -525,31 +624,32 @@ fn render_tile_row(
                 let (mut d, mut m1, mut m2, mut dist, mut median) = (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
                 // Σ w rather than 1 − T: no cancellation when α is tiny.
                 let mut asum = 0.0f32;
-                let (tf, ev) = composite_pixel(td, pxf, pyf, s, k, &mut win, |hit, t| {
-                    let wgt = hit.alpha * t;
-                    let id = td.ids[hit.li as usize] as usize;
+                // Inlined so the accumulators stay in registers across blends.
+                let (tf, ev) = composite_pixel_forward(td, pxf, pyf, s, k, #[inline(always)] |li, z, alpha, t| {
+                    let wgt = alpha * t;
+                    let id = td.ids[li] as usize;
                     if o.colour {
-                        let col = td.colour[hit.li as usize];
+                        let col = td.colour[li];
                         c[0] += wgt * col[0];
                         c[1] += wgt * col[1];
                         c[2] += wgt * col[2];
                     }
                     if o.normal {
-                        let nn = td.normal[hit.li as usize];
+                        let nn = td.normal[li];
                         nrm[0] += wgt * nn[0];
                         nrm[1] += wgt * nn[1];
                         nrm[2] += wgt * nn[2];
                     }
-                    d += wgt * hit.z;
+                    d += wgt * z;
                     asum += wgt;
                     if o.distortion {
-                        let m = norm_depth(hit.z, s.near, s.far);
+                        let m = norm_depth(z, s.near, s.far);
                         dist += (m * m * (1.0 - t) + m2 - 2.0 * m * m1) * wgt;
                         m1 += m * wgt;
                         m2 += m * m * wgt;
                     }
                     if t > 0.5 {
-                        median = hit.z;
+                        median = z;
                     }
                     if let Some(fe) = features {
                         let src = &fe.data[id * nch..(id + 1) * nch];
@@ -638,10 +738,12 @@ mod window_tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
         for k in [1usize, 2, 5, 8, 16] {
             let (mut ring, mut reg) = (RingWindow::new(), RegWindow::new());
-            let mut slot = 0u8;
+            let mut slot = 0u32;
             for _ in 0..2000 {
                 if ring.len() == k || (ring.len() > 0 && rng.random::<f32>() < 0.3) {
                     assert_eq!(ring.front_slot(), reg.front_slot());
+                    assert_eq!(ring.front_z(), reg.front_z());
+                    assert_eq!(ring.front_alpha(), reg.front_alpha());
                     ring.pop_front();
                     reg.pop_front();
                 } else {
@@ -649,15 +751,18 @@ mod window_tests {
                         0..3 => 0.5, // ties
                         _ => rng.random::<f32>(),
                     };
-                    slot = slot.wrapping_add(1) % 32;
-                    ring.insert(z, slot);
-                    reg.insert(z, slot);
+                    // Slots beyond u8 and u16: the forward stores tile-list indices.
+                    slot = slot.wrapping_add(1 + rng.random_range(0..100_000));
+                    let alpha = rng.random::<f32>();
+                    ring.insert(z, slot, alpha);
+                    reg.insert(z, slot, alpha);
                 }
                 assert_eq!(ring.len(), reg.len());
                 // Compare the whole order by draining copies.
                 let (mut a, mut b) = (RingWindow { ..ring }, RegWindow { ..reg });
                 while a.len() > 0 {
                     assert_eq!(a.front_slot(), b.front_slot(), "k = {k}");
+                    assert_eq!((a.front_z(), a.front_alpha()), (b.front_z(), b.front_alpha()));
                     a.pop_front();
                     b.pop_front();
                 }

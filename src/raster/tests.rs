@@ -413,3 +413,42 @@ fn densification_gradient_is_the_screen_space_centre_gradient() {
     }
     assert!(seen > 5);
 }
+
+/// The forward's pool-free compositor and the backward's pool compositor blend the same
+/// hits in the same order with the same T and stop at the same candidate, for every window
+/// size (register and ring windows), on a random scene with many overlaps and ties.
+#[test]
+fn forward_compositor_matches_pool_compositor() {
+    use super::forward::{Hit, RING, TileData, composite_pixel, composite_pixel_forward};
+    let scene = random_scene(300, 5, (0.05, 0.25), (0.3, 0.95));
+    let camera = camera(48, 40);
+    let mut settings = RasterSettings::default();
+    let proj = super::project::project(&scene, &camera, &settings);
+    let bins = super::tiles::bin(&proj, camera.width, camera.height);
+    let mut td = TileData::default();
+    let mut win = [Hit::default(); RING];
+    let mut blended = 0usize;
+    for k in [1usize, 3, 8, 16, 17, 32] {
+        settings.window = k;
+        for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
+            td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], settings.alpha_min);
+            let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
+            for y in ty * TILE..((ty + 1) * TILE).min(camera.height) {
+                for x in tx * TILE..((tx + 1) * TILE).min(camera.width) {
+                    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
+                    let (mut a, mut b) = (Vec::new(), Vec::new());
+                    let ra = composite_pixel(&td, px, py, &settings, k, &mut win, |h, t| {
+                        a.push((h.li as usize, h.z, h.alpha, t))
+                    });
+                    let rb = composite_pixel_forward(&td, px, py, &settings, k, |li, z, alpha, t| {
+                        b.push((li, z, alpha, t))
+                    });
+                    assert_eq!(ra, rb, "k = {k}, pixel ({x}, {y})");
+                    assert_eq!(a, b, "k = {k}, pixel ({x}, {y})");
+                    blended += a.len();
+                }
+            }
+        }
+    }
+    assert!(blended > 10_000, "the scene must overlap: {blended} blends");
+}

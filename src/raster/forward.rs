@@ -347,18 +347,21 @@ impl Window for RegWindow {
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
             let zv = _mm512_set1_ps(z);
+            // The live entries greater than z are a contiguous run ending at len − 1 (the
+            // window is sorted): they move up one lane and z lands just below the run (or at
+            // len). Mask arithmetic only, no popcount or variable shift: the compare → move
+            // chain is what successive inserts wait on.
             let live: u16 = ((1u32 << self.len) - 1) as u16;
             let greater = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(live, self.z, zv);
-            let pos = self.len - greater.count_ones() as usize;
-            let here: u16 = 1 << pos;
-            let keep: u16 = here.wrapping_sub(1);
+            let moved: u16 = greater << 1;
+            let here: u16 = (greater | (live + 1)) & !moved;
             let right = _mm512_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14);
-            let zs = _mm512_mask_mov_ps(_mm512_permutexvar_ps(right, self.z), here, zv);
-            self.z = _mm512_mask_mov_ps(zs, keep, self.z);
-            let ss = _mm512_mask_mov_epi32(_mm512_permutexvar_epi32(right, self.s), here, _mm512_set1_epi32(slot as i32));
-            self.s = _mm512_mask_mov_epi32(ss, keep, self.s);
-            let sa = _mm512_mask_mov_ps(_mm512_permutexvar_ps(right, self.a), here, _mm512_set1_ps(alpha));
-            self.a = _mm512_mask_mov_ps(sa, keep, self.a);
+            let z1 = _mm512_mask_permutexvar_ps(self.z, moved, right, self.z);
+            self.z = _mm512_mask_mov_ps(z1, here, zv);
+            let s1 = _mm512_mask_permutexvar_epi32(self.s, moved, right, self.s);
+            self.s = _mm512_mask_mov_epi32(s1, here, _mm512_set1_epi32(slot as i32));
+            let a1 = _mm512_mask_permutexvar_ps(self.a, moved, right, self.a);
+            self.a = _mm512_mask_mov_ps(a1, here, _mm512_set1_ps(alpha));
             self.len += 1;
         }
     }

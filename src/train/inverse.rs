@@ -716,6 +716,7 @@ pub fn run_until(
     let mut sc = Scratch::default();
     let mut v_surfels = state.surfels.zeros_like();
     let started = Instant::now();
+    let first_iteration = state.iteration;
     let mut last = InverseLosses::default();
     let mut interrupted = false;
     while state.iteration < cfg.inverse_iters {
@@ -826,6 +827,7 @@ pub fn run_until(
     )?;
     Ok(StageSummary {
         iterations: state.iteration,
+        iterations_run: state.iteration - first_iteration,
         surfels: state.surfels.len(),
         seconds,
         last_psnr: last.psnr_pbr,

@@ -49,11 +49,16 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
             );
             return Ok(());
         }
+        let resumed = if summary.iterations_run == summary.iterations {
+            String::new()
+        } else {
+            format!(" (resumed at iteration {})", summary.iterations - summary.iterations_run)
+        };
         eprintln!(
-            "{name}: {} iterations in {:.1} s ({:.2} it/s), {} surfels, last PSNR {:.2} dB → {}",
-            summary.iterations,
+            "{name}: {} iterations{resumed} in {:.1} s ({:.2} it/s), {} surfels, last PSNR {:.2} dB → {}",
+            summary.iterations_run,
             summary.seconds,
-            summary.iterations as f64 / summary.seconds.max(1e-9),
+            summary.iterations_run as f64 / summary.seconds.max(1e-9),
             summary.surfels,
             summary.last_psnr,
             cfg.out.display()

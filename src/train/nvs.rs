@@ -61,7 +61,11 @@ pub struct TimeSplit {
 /// What a finished (or interrupted) stage reports.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct StageSummary {
+    /// Last completed iteration.
     pub iterations: u32,
+    /// Iterations run by this call (fewer than `iterations` after `--resume`); `seconds` is
+    /// their time.
+    pub iterations_run: u32,
     pub surfels: usize,
     pub seconds: f64,
     pub last_psnr: f32,
@@ -407,6 +411,7 @@ pub fn run_until(
     let mut v_surfels = state.surfels.zeros_like();
     let mut times = TimeSplit::default();
     let started = Instant::now();
+    let first_iteration = state.iteration;
     let mut last = Losses::default();
     let mut interrupted = false;
     // Surfels need a few densification rounds after a reset to regain opacity before the
@@ -513,6 +518,7 @@ pub fn run_until(
     }
     Ok(StageSummary {
         iterations: state.iteration,
+        iterations_run: state.iteration - first_iteration,
         surfels: state.surfels.len(),
         seconds: started.elapsed().as_secs_f64(),
         last_psnr: last.psnr,

@@ -3,6 +3,10 @@
 //! `radiogs eval` on the result measures the ceiling of our shading model with this geometry.
 //!
 //!     cargo run --release --example oracle_materials -- RUN DATA OUT
+//!
+//! `ORACLE_ALBEDO=a` or `ORACLE_ROUGHNESS=r` replace the true albedo (grey a) or roughness by a
+//! constant: a resumed stage with the other material's learning rate at 0 then shows whether
+//! one material can be learned when the light and the other material are right.
 
 #[path = "common/scene_readme.rs"]
 mod scene_readme;
@@ -20,6 +24,17 @@ fn main() -> anyhow::Result<()> {
     let readme = scene_readme::load(&data)?;
     let objects = &readme.objects;
     anyhow::ensure!(!objects.is_empty(), "{}: README.json lists no objects", data.display());
+    let constant = |name: &str| -> anyhow::Result<Option<f32>> {
+        match std::env::var(name) {
+            Ok(v) => {
+                let x: f32 = v.parse().with_context(|| format!("{name}={v}: not a number"))?;
+                anyhow::ensure!(x > 0.0 && x < 1.0, "{name}={v}: must be inside (0, 1)");
+                Ok(Some(x))
+            }
+            Err(_) => Ok(None),
+        }
+    };
+    let (albedo_override, roughness_override) = (constant("ORACLE_ALBEDO")?, constant("ORACLE_ROUGHNESS")?);
     let mut s = radiogs::eval::load_run_surfels(&run)?;
     let mut counts = vec![0usize; objects.len()];
     for i in 0..s.len() {
@@ -28,8 +43,8 @@ fn main() -> anyhow::Result<()> {
         counts[k] += 1;
         let m = &readme.materials[&objects[k].material];
         let base = objects[k].base_colour(m, p);
-        s.albedo_logits[i] = base.map(|c| albedo_to_logit(c as f32));
-        s.roughness_logits[i] = logit(m.roughness as f32);
+        s.albedo_logits[i] = base.map(|c| albedo_to_logit(albedo_override.unwrap_or(c as f32)));
+        s.roughness_logits[i] = logit(roughness_override.unwrap_or(m.roughness as f32));
     }
     for (o, c) in objects.iter().zip(&counts) {
         println!("{:20} {c}", o.object);

@@ -213,7 +213,16 @@ fn backward_tile_row(
                 }
                 let (pxf, pyf) = (x as f32 + 0.5, y as f32 + 0.5);
                 list.clear();
-                let (tf, _) = composite_pixel(td, pxf, pyf, s, k, &mut win, #[inline(always)] |hit, t| list.push((*hit, t)));
+                let (tf, _) = composite_pixel(
+                    td,
+                    pxf,
+                    pyf,
+                    s,
+                    k,
+                    &mut win,
+                    #[inline(always)]
+                    |hit, t| list.push((*hit, t)),
+                );
                 if list.is_empty() {
                     continue;
                 }

@@ -293,12 +293,7 @@ impl RegWindow {
         use std::arch::x86_64::*;
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
-            RegWindow {
-                z: _mm512_set1_ps(f32::INFINITY),
-                s: _mm512_setzero_si512(),
-                a: _mm512_setzero_ps(),
-                len: 0,
-            }
+            RegWindow { z: _mm512_set1_ps(f32::INFINITY), s: _mm512_setzero_si512(), a: _mm512_setzero_ps(), len: 0 }
         }
     }
 }
@@ -313,9 +308,7 @@ impl Window for RegWindow {
     fn front_slot(&self) -> usize {
         use std::arch::x86_64::*;
         // SAFETY: this type exists only when avx512f is enabled at compile time.
-        unsafe {
-            _mm_cvtsi128_si32(_mm512_castsi512_si128(self.s)) as u32 as usize
-        }
+        unsafe { _mm_cvtsi128_si32(_mm512_castsi512_si128(self.s)) as u32 as usize }
     }
     #[inline(always)]
     fn front_z(&self) -> f32 {
@@ -628,39 +621,47 @@ fn render_tile_row(
                 // Σ w rather than 1 − T: no cancellation when α is tiny.
                 let mut asum = 0.0f32;
                 // Inlined so the accumulators stay in registers across blends.
-                let (tf, ev) = composite_pixel_forward(td, pxf, pyf, s, k, #[inline(always)] |li, z, alpha, t| {
-                    let wgt = alpha * t;
-                    let id = td.ids[li] as usize;
-                    if o.colour {
-                        let col = td.colour[li];
-                        c[0] += wgt * col[0];
-                        c[1] += wgt * col[1];
-                        c[2] += wgt * col[2];
-                    }
-                    if o.normal {
-                        let nn = td.normal[li];
-                        nrm[0] += wgt * nn[0];
-                        nrm[1] += wgt * nn[1];
-                        nrm[2] += wgt * nn[2];
-                    }
-                    d += wgt * z;
-                    asum += wgt;
-                    if o.distortion {
-                        let m = norm_depth(z, s.near, s.far);
-                        dist += (m * m * (1.0 - t) + m2 - 2.0 * m * m1) * wgt;
-                        m1 += m * wgt;
-                        m2 += m * m * wgt;
-                    }
-                    if t > 0.5 {
-                        median = z;
-                    }
-                    if let Some(fe) = features {
-                        let src = &fe.data[id * nch..(id + 1) * nch];
-                        for ch in 0..nch {
-                            f[ch] += wgt * src[ch];
+                let (tf, ev) = composite_pixel_forward(
+                    td,
+                    pxf,
+                    pyf,
+                    s,
+                    k,
+                    #[inline(always)]
+                    |li, z, alpha, t| {
+                        let wgt = alpha * t;
+                        let id = td.ids[li] as usize;
+                        if o.colour {
+                            let col = td.colour[li];
+                            c[0] += wgt * col[0];
+                            c[1] += wgt * col[1];
+                            c[2] += wgt * col[2];
                         }
-                    }
-                });
+                        if o.normal {
+                            let nn = td.normal[li];
+                            nrm[0] += wgt * nn[0];
+                            nrm[1] += wgt * nn[1];
+                            nrm[2] += wgt * nn[2];
+                        }
+                        d += wgt * z;
+                        asum += wgt;
+                        if o.distortion {
+                            let m = norm_depth(z, s.near, s.far);
+                            dist += (m * m * (1.0 - t) + m2 - 2.0 * m * m1) * wgt;
+                            m1 += m * wgt;
+                            m2 += m * m * wgt;
+                        }
+                        if t > 0.5 {
+                            median = z;
+                        }
+                        if let Some(fe) = features {
+                            let src = &fe.data[id * nch..(id + 1) * nch];
+                            for ch in 0..nch {
+                                f[ch] += wgt * src[ch];
+                            }
+                        }
+                    },
+                );
                 evals += ev as u64;
                 let a = asum;
                 let r = &mut chunk[((y - y0) * w + x) as usize * stride..][..stride];

@@ -440,9 +440,8 @@ fn forward_compositor_matches_pool_compositor() {
                     let ra = composite_pixel(&td, px, py, &settings, k, &mut win, |h, t| {
                         a.push((h.li as usize, h.z, h.alpha, t))
                     });
-                    let rb = composite_pixel_forward(&td, px, py, &settings, k, |li, z, alpha, t| {
-                        b.push((li, z, alpha, t))
-                    });
+                    let rb =
+                        composite_pixel_forward(&td, px, py, &settings, k, |li, z, alpha, t| b.push((li, z, alpha, t)));
                     assert_eq!(ra, rb, "k = {k}, pixel ({x}, {y})");
                     assert_eq!(a, b, "k = {k}, pixel ({x}, {y})");
                     blended += a.len();

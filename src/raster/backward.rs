@@ -247,9 +247,7 @@ fn backward_tile_row(
                 } else {
                     (0.0, v_alpha)
                 };
-                // m = norm_depth(z) = m_scale (1 − near/z), dm/dz = dm_scale / z².
-                let m_scale = s.far / (s.far - s.near);
-                let dm_scale = m_scale * s.near;
+                let dm_scale = s.far / (s.far - s.near) * s.near;
                 let mut acc = tf * dot3(v_c, s.background);
                 for j in (0..list.len()).rev() {
                     let (hit, t) = list[j];
@@ -273,10 +271,9 @@ fn backward_tile_row(
                         }
                     }
                     if v_dist != 0.0 {
-                        let inv_z = 1.0 / hit.z;
-                        let m = m_scale * (1.0 - s.near * inv_z);
+                        let m = norm_depth(hit.z, s.near, s.far);
                         q += v_dist * (m * m * a_tot - 2.0 * m * m1 + m2);
-                        let dm_dz = dm_scale * inv_z * inv_z;
+                        let dm_dz = dm_scale / (hit.z * hit.z);
                         v_z += v_dist * 2.0 * wgt * (m * a_tot - m1) * dm_dz;
                     }
                     if any_f {
@@ -307,7 +304,6 @@ fn backward_tile_row(
                         let v_v = 2.0 * v * v_rho + twv[1] * v_z;
                         let kk = [pxf * twv[0] - td.tux[li], pxf * twv[1] - td.tuy[li], pxf * twv[2] - td.tuz[li]];
                         let ll = [pyf * twv[0] - td.tvx[li], pyf * twv[1] - td.tvy[li], pyf * twv[2] - td.tvz[li]];
-                        // One division: scalar divides are the slowest instructions here.
                         let inv_hz = 1.0 / (kk[0] * ll[1] - kk[1] * ll[0]);
                         let v_h = [v_u * inv_hz, v_v * inv_hz, -(v_u * u + v_v * v) * inv_hz];
                         let v_k = cross(ll, v_h);

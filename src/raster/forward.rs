@@ -360,8 +360,60 @@ impl Window for RegWindow {
     }
 }
 
+/// Where a hit waits between entering the window and being blended: the slot the window
+/// carries names it.
+pub(crate) trait HitSlots {
+    /// Keep lane `l` of the group at `j0` (its z and α travel in the window); return its slot.
+    fn keep(&mut self, lanes: &Lanes, l: usize, j0: usize) -> u32;
+    /// The hit in `slot` has been blended.
+    fn release(&mut self, slot: u32);
+}
+
+/// The forward's slots: the candidate's index in the tile list (blending needs nothing else).
+pub(crate) struct ListIndex;
+
+impl HitSlots for ListIndex {
+    #[inline(always)]
+    fn keep(&mut self, _lanes: &Lanes, l: usize, j0: usize) -> u32 {
+        (j0 + l) as u32
+    }
+    #[inline(always)]
+    fn release(&mut self, _slot: u32) {}
+}
+
+/// The backward's slots: full hit records in a pool of RING entries (a bitmask of those in use).
+pub(crate) struct HitPool<'a> {
+    pub hits: &'a mut [Hit; RING],
+    used: u32,
+}
+
+impl HitSlots for HitPool<'_> {
+    #[inline(always)]
+    fn keep(&mut self, lanes: &Lanes, l: usize, j0: usize) -> u32 {
+        // A free slot exists: fewer than k ≤ 32 entries are in use.
+        let slot = (!self.used).trailing_zeros();
+        self.used |= 1u32 << slot;
+        self.hits[slot as usize] = Hit {
+            z: lanes.z[l],
+            alpha: lanes.alpha[l],
+            g: lanes.g[l],
+            u: lanes.u[l],
+            v: lanes.v[l],
+            li: (j0 + l) as u32,
+            is3d: lanes.is3d >> l & 1 != 0,
+            clamped: lanes.clamped >> l & 1 != 0,
+        };
+        slot
+    }
+    #[inline(always)]
+    fn release(&mut self, slot: u32) {
+        self.used &= !(1u32 << slot);
+    }
+}
+
 /// Composite one pixel through the sorted window, calling `blend(hit, T_before)` for every
-/// blended hit in blend order. Returns (T_final, candidates evaluated).
+/// blended hit in blend order (the backward: full hit records). Returns (T_final, candidates
+/// evaluated).
 #[inline(always)]
 pub(crate) fn composite_pixel(
     td: &TileData,
@@ -370,82 +422,23 @@ pub(crate) fn composite_pixel(
     s: &RasterSettings,
     k: usize,
     win: &mut [Hit; RING],
-    blend: impl FnMut(&Hit, f32),
-) -> (f32, u32) {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
-    if k <= 16 {
-        return composite_with(RegWindow::new(), td, px, py, s, k, win, blend);
-    }
-    composite_with(RingWindow::new(), td, px, py, s, k, win, blend)
-}
-
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn composite_with<W: Window>(
-    mut window: W,
-    td: &TileData,
-    px: f32,
-    py: f32,
-    s: &RasterSettings,
-    k: usize,
-    win: &mut [Hit; RING],
     mut blend: impl FnMut(&Hit, f32),
 ) -> (f32, u32) {
-    let mut t = 1.0f32;
-    // A bitmask tracks the pool slots in use; the window orders (z, slot) pairs.
-    let mut used = 0u32;
-    let t_min = s.transmittance_min;
-    let mut lanes = Lanes::default();
-    let mut j0 = 0;
-    while j0 < td.n {
-        let mut m = eval16(td, j0, px, py, s.near, s.alpha_min, &mut lanes);
-        while m != 0 {
-            let l = m.trailing_zeros() as usize;
-            m &= m - 1;
-            if window.len() == k {
-                let next = t * (1.0 - window.front_alpha());
-                if next < t_min {
-                    return (t, (j0 + l + 1) as u32);
-                }
-                let slot = window.front_slot();
-                blend(&win[slot], t);
-                t = next;
-                used &= !(1u32 << slot);
-                window.pop_front();
-            }
-            let (z, alpha) = (lanes.z[l], lanes.alpha[l]);
-            // A free slot exists: len < k ≤ 32 entries are in use.
-            let slot = (!used).trailing_zeros() as usize;
-            used |= 1u32 << slot;
-            win[slot] = Hit {
-                z,
-                alpha,
-                g: lanes.g[l],
-                u: lanes.u[l],
-                v: lanes.v[l],
-                li: (j0 + l) as u32,
-                is3d: lanes.is3d >> l & 1 != 0,
-                clamped: lanes.clamped >> l & 1 != 0,
-            };
-            window.insert(z, slot as u32, alpha);
-        }
-        j0 += 16;
-    }
-    while window.len() > 0 {
-        let next = t * (1.0 - window.front_alpha());
-        if next < t_min {
-            break;
-        }
-        blend(&win[window.front_slot()], t);
-        t = next;
-        window.pop_front();
-    }
-    (t, td.n as u32)
+    let pool = HitPool { hits: win, used: 0 };
+    composite(
+        td,
+        px,
+        py,
+        s,
+        k,
+        pool,
+        #[inline(always)]
+        |p: &HitPool, slot, _z, _alpha, t| blend(&p.hits[slot as usize], t),
+    )
 }
 
-/// The forward's compositor: the same decisions as `composite_pixel` (same evaluation, window
-/// order and stops), but the window carries the candidate index and α, so no hit record is
-/// built; `blend(li, z, α, T_before)`. Returns (T_final, candidates evaluated).
+/// The forward's compositor: the same decisions as `composite_pixel`, but no hit record is
+/// built; `blend(li, z, α, T_before)` with li the candidate's index in the tile list.
 #[inline(always)]
 pub(crate) fn composite_pixel_forward(
     td: &TileData,
@@ -453,24 +446,54 @@ pub(crate) fn composite_pixel_forward(
     py: f32,
     s: &RasterSettings,
     k: usize,
-    blend: impl FnMut(usize, f32, f32, f32),
+    mut blend: impl FnMut(usize, f32, f32, f32),
 ) -> (f32, u32) {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
-    if k <= 16 {
-        return composite_forward_with(RegWindow::new(), td, px, py, s, k, blend);
-    }
-    composite_forward_with(RingWindow::new(), td, px, py, s, k, blend)
+    composite(
+        td,
+        px,
+        py,
+        s,
+        k,
+        ListIndex,
+        // Inlined like the caller's blend, so its accumulators stay in registers.
+        #[inline(always)]
+        |_: &ListIndex, li, z, alpha, t| blend(li as usize, z, alpha, t),
+    )
 }
 
+/// Pick the window for K (registers for K ≤ 16 with AVX-512, else the ring buffer).
 #[inline(always)]
-fn composite_forward_with<W: Window>(
-    mut window: W,
+fn composite<S: HitSlots>(
     td: &TileData,
     px: f32,
     py: f32,
     s: &RasterSettings,
     k: usize,
-    mut blend: impl FnMut(usize, f32, f32, f32),
+    slots: S,
+    blend: impl FnMut(&S, u32, f32, f32, f32),
+) -> (f32, u32) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    if k <= 16 {
+        return composite_with(RegWindow::new(), slots, td, px, py, s, k, blend);
+    }
+    composite_with(RingWindow::new(), slots, td, px, py, s, k, blend)
+}
+
+/// The per-pixel loop: evaluate the tile's candidates 16 at a time, insert each hit into the
+/// window; when the window is full, blend its nearest entry first (stopping before a blend
+/// that would take T below the cut-off); at the end flush the window nearest-first.
+/// `blend(slots, slot, z, α, T_before)`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn composite_with<W: Window, S: HitSlots>(
+    mut window: W,
+    mut slots: S,
+    td: &TileData,
+    px: f32,
+    py: f32,
+    s: &RasterSettings,
+    k: usize,
+    mut blend: impl FnMut(&S, u32, f32, f32, f32),
 ) -> (f32, u32) {
     let mut t = 1.0f32;
     let t_min = s.transmittance_min;
@@ -487,11 +510,14 @@ fn composite_forward_with<W: Window>(
                 if next < t_min {
                     return (t, (j0 + l + 1) as u32);
                 }
-                blend(window.front_slot(), window.front_z(), alpha, t);
+                let slot = window.front_slot() as u32;
+                blend(&slots, slot, window.front_z(), alpha, t);
                 t = next;
+                slots.release(slot);
                 window.pop_front();
             }
-            window.insert(lanes.z[l], (j0 + l) as u32, lanes.alpha[l]);
+            let slot = slots.keep(&lanes, l, j0);
+            window.insert(lanes.z[l], slot, lanes.alpha[l]);
         }
         j0 += 16;
     }
@@ -501,7 +527,7 @@ fn composite_forward_with<W: Window>(
         if next < t_min {
             break;
         }
-        blend(window.front_slot(), window.front_z(), alpha, t);
+        blend(&slots, window.front_slot() as u32, window.front_z(), alpha, t);
         t = next;
         window.pop_front();
     }

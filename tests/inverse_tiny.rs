@@ -68,12 +68,12 @@ fn make_dataset(dir: &Path) -> Surfels {
     gt
 }
 
-#[test]
-fn lambert_plane_albedo_converges_under_known_light() {
-    let data = temp_dir("data");
+/// The dataset and an nvs checkpoint with the right geometry, in fresh folders named by `tag`.
+fn dataset_and_nvs_run(tag: &str) -> (PathBuf, Dataset, PathBuf) {
+    let data = temp_dir(&format!("{tag}-data"));
     let gt = make_dataset(&data);
     let dataset = Dataset::open(&data).unwrap();
-    let run = temp_dir("run");
+    let run = temp_dir(&format!("{tag}-run"));
     // The nvs result: the right geometry (SH from the images do not matter here).
     // SH at the observed colour (as nvs would leave them): the Lambert part of the radiance.
     let mut gt = gt;
@@ -84,6 +84,54 @@ fn lambert_plane_albedo_converges_under_known_light() {
     let mut c = Checkpoint { meta: serde_json::json!({"stage": "nvs", "iteration": 1}), ..Default::default() };
     c.put_surfels("params", &gt);
     c.save(&radiogs::train::nvs::checkpoint_path(&run)).unwrap();
+    (data, dataset, run)
+}
+
+/// `--light-warmup N`: albedo and roughness stay exactly at their fresh values for the first N
+/// iterations while the light learns; after N they move. A resumed call reports only the
+/// iterations it ran.
+#[test]
+fn light_warmup_freezes_materials_then_releases_them() {
+    let (data, dataset, run) = dataset_and_nvs_run("warmup");
+    let mut cfg = TrainConfig {
+        data,
+        out: run.clone(),
+        inverse_iters: 12,
+        light_warmup: 12,
+        background: Background::Black,
+        env_init: 0.5,
+        pbr_samples: 8,
+        rc_rays: 8,
+        rc_surfels: 16,
+        checkpoint_every: 0,
+        log_every: 50,
+        ..TrainConfig::default()
+    };
+    cfg.save(&run.join("config.toml")).unwrap();
+    let summary = radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+    assert_eq!((summary.iterations, summary.iterations_run), (12, 12));
+    let frozen = radiogs::io::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
+    for i in 0..frozen.len() {
+        let a = frozen.albedo(i);
+        assert!(a.iter().all(|&c| (c - cfg.albedo_init).abs() < 1e-5), "surfel {i}: albedo {a:?}");
+        let r = radiogs::surfels::sigmoid(frozen.roughness_logits[i]);
+        assert!((r - cfg.roughness_init).abs() < 1e-5, "surfel {i}: roughness {r}");
+    }
+    let env = EnvMap::load(&run.join("envmap.exr")).unwrap();
+    assert!(env.texels.iter().flatten().any(|&v| (v - 0.5).abs() > 1e-3), "the light must learn meanwhile");
+    // Past the warm-up the materials move; the resumed call ran 8 iterations.
+    cfg.inverse_iters = 20;
+    cfg.resume = true;
+    let summary = radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+    assert_eq!((summary.iterations, summary.iterations_run), (20, 8));
+    let moved = radiogs::io::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
+    let change = (0..moved.len()).map(|i| (moved.albedo(i)[0] - cfg.albedo_init).abs()).fold(0.0f32, f32::max);
+    assert!(change > 1e-3, "albedo did not move after the warm-up: {change}");
+}
+
+#[test]
+fn lambert_plane_albedo_converges_under_known_light() {
+    let (data, dataset, run) = dataset_and_nvs_run("plane");
     let cfg = TrainConfig {
         data: data.clone(),
         out: run.clone(),

@@ -61,7 +61,7 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
             .map(|_| {
                 let t = Instant::now();
                 let p = raster::project::project(&surfels, &cam, &settings);
-                let _ = raster::tiles::bin(&p, size, size);
+                let _ = raster::tiles::bin(&p, size, size, settings.alpha_min);
                 t.elapsed().as_secs_f64() * 1e3
             })
             .collect();

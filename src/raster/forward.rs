@@ -565,7 +565,7 @@ pub fn render(
         assert_eq!(f.data.len(), n * f.channels, "features must be N × channels");
     }
     let proj = project::project(surfels, camera, settings);
-    let bins = tiles::bin(&proj, w, h);
+    let bins = tiles::bin(&proj, w, h, settings.alpha_min);
     let stride = REC_FEAT + nch;
     let mut buf = vec![0.0f32; (w * h) as usize * stride];
     let evaluations: u64 = if w == 0 || h == 0 {

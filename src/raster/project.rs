@@ -45,13 +45,6 @@ pub struct Projected {
     pub radius: Vec<f32>,
 }
 
-impl Projected {
-    pub fn tile_count(&self, i: usize) -> usize {
-        let r = self.rect[i];
-        if r[0] > r[2] || r[1] > r[3] { 0 } else { ((r[2] - r[0] + 1) * (r[3] - r[1] + 1)) as usize }
-    }
-}
-
 struct One {
     tu: [f32; 3],
     tv: [f32; 3],

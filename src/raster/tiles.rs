@@ -7,6 +7,9 @@
 //! tile-major list, so the backward pass can write per-pair gradient rows tile by tile and sum
 //! them per surfel afterwards without atomics.
 //!
+//! A surfel joins only the tiles of its bounding box that its α ≥ α_min footprint touches
+//! ([`Footprint`]): dropped pairs would evaluate to α < α_min at every pixel anyway.
+//!
 //! Parallel decomposition: counting and scattering are serial O(pairs); the per-tile depth sort
 //! runs with rayon over tiles.
 
@@ -39,28 +42,34 @@ pub(crate) fn split_by_offsets<'a, T>(mut data: &'a mut [T], offsets: &[u32]) ->
     out
 }
 
-pub fn bin(p: &Projected, width: u32, height: u32) -> TileBins {
+pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32) -> TileBins {
     let tiles_x = width.div_ceil(TILE);
     let tiles_y = height.div_ceil(TILE);
     let ntiles = (tiles_x * tiles_y) as usize;
     let n = p.rect.len();
+    // Pass 1: each surfel's tiles (its rectangle row by row, minus the tiles its α ≥ α_min
+    // region misses) in generation order; pair counts per tile.
     let mut pair_offsets = Vec::with_capacity(n + 1);
     pair_offsets.push(0u32);
+    let mut pair_tiles: Vec<u32> = Vec::with_capacity(n * 4);
     let mut counts = vec![0u32; ntiles + 1];
-    let mut total = 0usize;
     for i in 0..n {
         let r = p.rect[i];
-        total += p.tile_count(i);
-        pair_offsets.push(total as u32);
-        if r[0] > r[2] {
-            continue;
-        }
-        for ty in r[1]..=r[3] {
-            for tx in r[0]..=r[2] {
-                counts[(ty * tiles_x + tx) as usize + 1] += 1;
+        if r[0] <= r[2] && r[1] <= r[3] {
+            let footprint = Footprint::new(p, i, alpha_min);
+            for ty in r[1]..=r[3] {
+                for tx in r[0]..=r[2] {
+                    if footprint.as_ref().is_none_or(|f| f.touches_tile(tx, ty)) {
+                        let t = ty * tiles_x + tx;
+                        counts[t as usize + 1] += 1;
+                        pair_tiles.push(t);
+                    }
+                }
             }
         }
+        pair_offsets.push(pair_tiles.len() as u32);
     }
+    let total = pair_tiles.len();
     for t in 0..ntiles {
         counts[t + 1] += counts[t];
     }
@@ -69,32 +78,122 @@ pub fn bin(p: &Projected, width: u32, height: u32) -> TileBins {
     // Key: depth bits (positive floats order as integers) then surfel index.
     let mut keys = vec![0u64; total];
     for i in 0..n {
-        let r = p.rect[i];
-        if r[0] > r[2] {
-            continue;
-        }
         let key = ((p.depth[i].to_bits() as u64) << 32) | i as u64;
-        for ty in r[1]..=r[3] {
-            for tx in r[0]..=r[2] {
-                let t = (ty * tiles_x + tx) as usize;
-                keys[fill[t] as usize] = key;
-                fill[t] += 1;
-            }
+        for &t in &pair_tiles[pair_offsets[i] as usize..pair_offsets[i + 1] as usize] {
+            keys[fill[t as usize] as usize] = key;
+            fill[t as usize] += 1;
         }
     }
+    drop(pair_tiles);
     split_by_offsets(&mut keys, &offsets).into_par_iter().for_each(|k| k.sort_unstable());
     let ids: Vec<u32> = keys.iter().map(|k| *k as u32).collect();
     drop(keys);
+    // A surfel's pairs were generated in ascending tile order, so walking the tiles in order
+    // meets them in generation order.
     let mut sorted_of_gen = vec![0u32; total];
-    for t in 0..ntiles {
-        let (tx, ty) = (t as u32 % tiles_x, t as u32 / tiles_x);
-        for pos in offsets[t]..offsets[t + 1] {
-            let i = ids[pos as usize] as usize;
-            let r = p.rect[i];
-            let w = r[2] - r[0] + 1;
-            let g = pair_offsets[i] + (ty - r[1]) * w + (tx - r[0]);
-            sorted_of_gen[g as usize] = pos;
-        }
+    let mut next_gen: Vec<u32> = pair_offsets[..n].to_vec();
+    for (pos, &i) in ids.iter().enumerate() {
+        let g = &mut next_gen[i as usize];
+        sorted_of_gen[*g as usize] = pos as u32;
+        *g += 1;
     }
     TileBins { tiles_x, tiles_y, offsets, ids, pair_offsets, sorted_of_gen }
+}
+
+/// The pixels where a surfel's α can reach α_min: the ray–disk region ρ₃ = u² + v² ≤ r² (an
+/// ellipse in the image when the disk does not reach the camera plane) and the screen-space
+/// filter circle ρ₂ = 2|μ₂D − p|² ≤ r², r² = 2 ln(o / α_min). A tile of the bounding box that
+/// neither touches is dropped from the surfel's list: every pixel of it would evaluate the
+/// surfel to α < α_min and skip it, so images and gradients are unchanged.
+///
+/// For pixel p = (x, y, 1) the plane point is (u, v, 1) ∝ h = x·A + y·B + C with A = T_v × T_w,
+/// B = T_w × T_u, C = T_u × T_v (the cross product the compositor evaluates), so ρ₃ ≤ r² is
+/// the quadratic f(x, y) = h₀² + h₁² − r²·h₂² ≤ 0. When its 2 × 2 part is positive definite
+/// (a bounded ellipse) the tile touches it iff the minimum of f over the tile is ≤ 0: the
+/// unconstrained minimum if it lies in the tile, else the least of the four edge minima. Other
+/// cases keep every tile. f64, with the tile grown by half a pixel and r² by 1 % (conservative).
+struct Footprint {
+    /// f(x, y) = qxx x² + 2 qxy x y + qyy y² + 2 lx x + 2 ly y + c.
+    qxx: f64,
+    qxy: f64,
+    qyy: f64,
+    lx: f64,
+    ly: f64,
+    c: f64,
+    /// The ellipse part is bounded (positive definite); otherwise only the filter circle prunes.
+    ellipse: bool,
+    mean: [f64; 2],
+    /// Squared radius of the filter circle.
+    circle_r2: f64,
+}
+
+impl Footprint {
+    fn new(p: &Projected, i: usize, alpha_min: f32) -> Option<Footprint> {
+        let o = p.opacity[i] as f64;
+        if !(alpha_min > 0.0) || !(o > 0.0) {
+            return None;
+        }
+        let r2 = 2.0 * (o / alpha_min as f64).ln() * 1.01 + 1e-6;
+        let v = |a: [f32; 3]| a.map(|x| x as f64);
+        let (tu, tv, tw) = (v(p.tu[i]), v(p.tv[i]), v(p.tw[i]));
+        let cross = |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+        let (a, b, c) = (cross(tv, tw), cross(tw, tu), cross(tu, tv));
+        let w = [1.0, 1.0, -r2];
+        let sum = |f: &dyn Fn(usize) -> f64| (0..3).map(|k| w[k] * f(k)).sum::<f64>();
+        let (qxx, qxy, qyy) = (sum(&|k| a[k] * a[k]), sum(&|k| a[k] * b[k]), sum(&|k| b[k] * b[k]));
+        let (lx, ly, cc) = (sum(&|k| a[k] * c[k]), sum(&|k| b[k] * c[k]), sum(&|k| c[k] * c[k]));
+        let scale = qxx.abs().max(qyy.abs());
+        let ellipse = qxx > 0.0 && qyy > 0.0 && qxx * qyy - qxy * qxy > 1e-9 * scale * scale;
+        let f = Footprint {
+            qxx,
+            qxy,
+            qyy,
+            lx,
+            ly,
+            c: cc,
+            ellipse,
+            mean: [p.mean2d[i][0] as f64, p.mean2d[i][1] as f64],
+            circle_r2: 0.5 * r2,
+        };
+        if !f.ellipse || !f.c.is_finite() || !f.mean[0].is_finite() || !f.mean[1].is_finite() {
+            return None; // keep the whole rectangle
+        }
+        Some(f)
+    }
+
+    fn f(&self, x: f64, y: f64) -> f64 {
+        self.qxx * x * x + 2.0 * self.qxy * x * y + self.qyy * y * y + 2.0 * (self.lx * x + self.ly * y) + self.c
+    }
+
+    fn touches_tile(&self, tx: u32, ty: u32) -> bool {
+        let t = TILE as f64;
+        // Pixel centres of the tile lie in [t·tx + 0.5, t·tx + t − 0.5]; grown by half a pixel.
+        let (x0, x1) = (t * tx as f64, t * (tx + 1) as f64);
+        let (y0, y1) = (t * ty as f64, t * (ty + 1) as f64);
+        // Filter circle: distance from μ₂D to the tile.
+        let dx = (x0 - self.mean[0]).max(0.0).max(self.mean[0] - x1);
+        let dy = (y0 - self.mean[1]).max(0.0).max(self.mean[1] - y1);
+        if dx * dx + dy * dy <= self.circle_r2 {
+            return true;
+        }
+        // Ellipse: centre of f inside the tile?
+        let det = self.qxx * self.qyy - self.qxy * self.qxy;
+        let cx = (self.qxy * self.ly - self.qyy * self.lx) / det;
+        let cy = (self.qxy * self.lx - self.qxx * self.ly) / det;
+        if cx >= x0 && cx <= x1 && cy >= y0 && cy <= y1 {
+            return true;
+        }
+        // Else the minimum is on an edge: minimise the 1-D convex quadratic along each edge.
+        let on_vertical = |x: f64| {
+            let y = (-(self.qxy * x + self.ly) / self.qyy).clamp(y0, y1);
+            self.f(x, y)
+        };
+        let on_horizontal = |y: f64| {
+            let x = (-(self.qxy * y + self.lx) / self.qxx).clamp(x0, x1);
+            self.f(x, y)
+        };
+        let m = on_vertical(x0).min(on_vertical(x1)).min(on_horizontal(y0)).min(on_horizontal(y1));
+        // NaN (degenerate numbers) keeps the tile.
+        !(m > 0.0)
+    }
 }

@@ -493,11 +493,18 @@ fn tile_culling_drops_only_pairs_without_hits() {
                 let (su, sv) = (scene.log_scales[i][0].exp() as f64, scene.log_scales[i][1].exp() as f64);
                 let o = 1.0 / (1.0 + (-scene.opacity_logits[i] as f64).exp());
                 let c: [f64; 3] = std::array::from_fn(|k| dot(rot[k], mu) + tr[k]);
-                let m2d = [camera.fx as f64 * c[0] / c[2] + camera.cx as f64, camera.fy as f64 * c[1] / c[2] + camera.cy as f64];
+                let m2d = [
+                    camera.fx as f64 * c[0] / c[2] + camera.cx as f64,
+                    camera.fy as f64 * c[1] / c[2] + camera.cy as f64,
+                ];
                 for y in ty * TILE..((ty + 1) * TILE).min(camera.height) {
                     for x in tx * TILE..((tx + 1) * TILE).min(camera.width) {
                         let (pxf, pyf) = (x as f64 + 0.5, y as f64 + 0.5);
-                        let dc = [(pxf - camera.cx as f64) / camera.fx as f64, (pyf - camera.cy as f64) / camera.fy as f64, 1.0];
+                        let dc = [
+                            (pxf - camera.cx as f64) / camera.fx as f64,
+                            (pyf - camera.cy as f64) / camera.fy as f64,
+                            1.0,
+                        ];
                         let d: [f64; 3] = std::array::from_fn(|a| (0..3).map(|k| rot[k][a] * dc[k]).sum());
                         let den = dot(n, d);
                         let rho3 = if den == 0.0 {

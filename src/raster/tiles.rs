@@ -136,7 +136,9 @@ impl Footprint {
         let r2 = 2.0 * (o / alpha_min as f64).ln() * 1.01 + 1e-6;
         let v = |a: [f32; 3]| a.map(|x| x as f64);
         let (tu, tv, tw) = (v(p.tu[i]), v(p.tv[i]), v(p.tw[i]));
-        let cross = |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+        let cross = |a: [f64; 3], b: [f64; 3]| {
+            [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+        };
         let (a, b, c) = (cross(tv, tw), cross(tw, tu), cross(tu, tv));
         let w = [1.0, 1.0, -r2];
         let sum = |f: &dyn Fn(usize) -> f64| (0..3).map(|k| w[k] * f(k)).sum::<f64>();

@@ -56,7 +56,10 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32) -> TileBins {
     for i in 0..n {
         let r = p.rect[i];
         if r[0] <= r[2] && r[1] <= r[3] {
-            let footprint = Footprint::new(p, i, alpha_min);
+            // A one-row or one-column rectangle almost never loses a tile (the footprint is
+            // connected and spans its box): skip the test there, it costs more than it saves
+            // on the many small surfels of training (rand 10k: +0.06 % evaluations).
+            let footprint = if r[2] > r[0] && r[3] > r[1] { Footprint::new(p, i, alpha_min) } else { None };
             for ty in r[1]..=r[3] {
                 for tx in r[0]..=r[2] {
                     if footprint.as_ref().is_none_or(|f| f.touches_tile(tx, ty)) {

@@ -524,9 +524,25 @@ fn tile_culling_drops_only_pairs_without_hits() {
                 }
             }
         }
-        // Same pairs otherwise: per surfel the kept pairs are a subset in generation order.
+        // The backward sums a surfel's pair rows through pair_offsets / sorted_of_gen: with
+        // pairs dropped, surfel i's generation numbers must map one-to-one onto exactly the
+        // positions of `ids` that hold i, in ascending tile order.
         assert_eq!(culled.pair_offsets.len(), full.pair_offsets.len());
         assert_eq!(culled.ids.len(), *culled.pair_offsets.last().unwrap() as usize);
+        let mut hit = vec![false; culled.ids.len()];
+        for i in 0..scene.len() {
+            let mut last = None;
+            for g in culled.pair_offsets[i]..culled.pair_offsets[i + 1] {
+                let pos = culled.sorted_of_gen[g as usize] as usize;
+                assert_eq!(culled.ids[pos] as usize, i, "seed {seed}: generation {g} maps to another surfel");
+                assert!(!hit[pos], "seed {seed}: position {pos} mapped twice");
+                hit[pos] = true;
+                let tile = culled.offsets.partition_point(|&o| o as usize <= pos) - 1;
+                assert!(last.is_none_or(|l| l < tile), "seed {seed}: surfel {i}'s pairs out of tile order");
+                last = Some(tile);
+            }
+        }
+        assert!(hit.iter().all(|&h| h), "seed {seed}: a pair no surfel's generation range reaches");
     }
     assert!(dropped_total > 1000, "the cull dropped only {dropped_total} pairs");
 }

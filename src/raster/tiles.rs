@@ -123,8 +123,6 @@ struct Footprint {
     lx: f64,
     ly: f64,
     c: f64,
-    /// The ellipse part is bounded (positive definite); otherwise only the filter circle prunes.
-    ellipse: bool,
     mean: [f64; 2],
     /// Squared radius of the filter circle.
     circle_r2: f64,
@@ -148,7 +146,7 @@ impl Footprint {
         let (qxx, qxy, qyy) = (sum(&|k| a[k] * a[k]), sum(&|k| a[k] * b[k]), sum(&|k| b[k] * b[k]));
         let (lx, ly, cc) = (sum(&|k| a[k] * c[k]), sum(&|k| b[k] * c[k]), sum(&|k| c[k] * c[k]));
         let scale = qxx.abs().max(qyy.abs());
-        let ellipse = qxx > 0.0 && qyy > 0.0 && qxx * qyy - qxy * qxy > 1e-9 * scale * scale;
+        let bounded = qxx > 0.0 && qyy > 0.0 && qxx * qyy - qxy * qxy > 1e-9 * scale * scale;
         let f = Footprint {
             qxx,
             qxy,
@@ -156,11 +154,10 @@ impl Footprint {
             lx,
             ly,
             c: cc,
-            ellipse,
             mean: [p.mean2d[i][0] as f64, p.mean2d[i][1] as f64],
             circle_r2: 0.5 * r2,
         };
-        if !f.ellipse || !f.c.is_finite() || !f.mean[0].is_finite() || !f.mean[1].is_finite() {
+        if !bounded || !f.c.is_finite() || !f.mean[0].is_finite() || !f.mean[1].is_finite() {
             return None; // keep the whole rectangle
         }
         Some(f)

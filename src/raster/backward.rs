@@ -1,7 +1,9 @@
 //! Backward rasterisation, exact for the order the forward pass used.
 //!
 //! Per pixel the forward window is re-run (`composite_pixel`) to list the blended hits in blend
-//! order with their T_before; the list is then walked back to front (2DGS bookkeeping). With
+//! order with their T_before; the list is then walked back to front, 16 hits at a time (SIMD
+//! across hits: each hit's terms are gathered from its candidate, the suffix sums below are
+//! in-register scans, and the 16 gradient rows are written through a transpose). With
 //! every output written as O = Σ_j w_j q_j + T_n b (w_j = α_j T_j), ∂O/∂α_j = T_j q_j −
 //! (Σ_{k>j} w_k q_k + T_n b)/(1 − α_j). All outputs share that form with the combined
 //! q_j = v_C·c_j + v_F·f_j + v_A' + v_D·z_j + v_N·n_j + v_dist·g_j, where
@@ -16,13 +18,15 @@
 //! summed per surfel (rayon over surfels, via `sorted_of_gen`) and pushed through the
 //! projection backward.
 
-use super::forward::{Hit, TileData, composite_pixel, norm_depth};
+use super::forward::{TileData, composite_two_pixels, load16, splat_alpha, splat_eval};
+use super::lanes;
 use super::project::{ProjGrad, SurfelGradSlots, project_backward_one};
 use super::tiles::split_by_offsets;
 use super::{BackwardOutput, Features, ForwardState, MAX_FEATURES, RasterSettings, RenderGrads, TILE};
 use crate::camera::Camera;
 use crate::surfels::{SurfelGrads, Surfels};
 use rayon::prelude::*;
+use wide::f32x16;
 
 const ROW_TU: usize = 0;
 const ROW_TV: usize = 3;
@@ -61,9 +65,9 @@ pub fn render_backward(
         let row_offsets: Vec<u32> =
             (0..=bins.tiles_y).map(|ty| bins.offsets[(ty * bins.tiles_x) as usize] * stride as u32).collect();
         split_by_offsets(&mut rows, &row_offsets).into_par_iter().enumerate().for_each_init(
-            || (TileData::default(), Vec::<(Hit, f32)>::with_capacity(256)),
-            |(td, list), (ty, chunk)| {
-                backward_tile_row(state, camera, settings, features, grads, ty as u32, chunk, stride, td, list)
+            || (TileData::default(), [PixelHits::default(), PixelHits::default()]),
+            |(td, hits), (ty, chunk)| {
+                backward_tile_row(state, camera, settings, features, grads, ty as u32, chunk, stride, td, hits)
             },
         );
     }
@@ -142,13 +146,71 @@ fn get3(v: &[[f32; 3]], i: usize) -> [f32; 3] {
 fn get1(v: &[f32], i: usize) -> f32 {
     if v.is_empty() { 0.0 } else { v[i] }
 }
-#[inline(always)]
-fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+/// One pixel's blended hits in blend order, as a structure of arrays padded to a multiple of
+/// 16 (padding: α = T = 0, z = 1, so it carries no weight and no division by zero).
+#[derive(Default)]
+struct PixelHits {
+    li: Vec<u32>,
+    z: Vec<f32>,
+    alpha: Vec<f32>,
+    t: Vec<f32>,
+    len: usize,
 }
-#[inline(always)]
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+impl PixelHits {
+    /// Room for every candidate of a tile of `n` (a pixel blends each at most once).
+    fn reserve_tile(&mut self, n: usize) {
+        let cap = n.div_ceil(16) * 16 + 16;
+        if self.li.len() < cap {
+            self.li.resize(cap, 0);
+            self.z.resize(cap, 1.0);
+            self.alpha.resize(cap, 0.0);
+            self.t.resize(cap, 0.0);
+        }
+    }
+    #[inline(always)]
+    fn push(&mut self, li: usize, z: f32, alpha: f32, t: f32) {
+        let j = self.len;
+        self.li[j] = li as u32;
+        self.z[j] = z;
+        self.alpha[j] = alpha;
+        self.t[j] = t;
+        self.len = j + 1;
+    }
+    /// Pad the last group of 16.
+    fn pad(&mut self) {
+        for j in self.len..self.len.div_ceil(16) * 16 {
+            self.li[j] = 0;
+            self.z[j] = 1.0;
+            self.alpha[j] = 0.0;
+            self.t[j] = 0.0;
+        }
+    }
+}
+
+/// Per-pixel output gradients (zero for outputs that are off).
+struct PixelGrads {
+    colour: [f32; 3],
+    alpha: f32,
+    depth: f32,
+    median: f32,
+    normal: [f32; 3],
+    distortion: f32,
+    features: [f32; MAX_FEATURES],
+    any_feature: bool,
+}
+
+impl PixelGrads {
+    fn is_zero(&self) -> bool {
+        self.colour == [0.0; 3]
+            && self.alpha == 0.0
+            && self.depth == 0.0
+            && self.median == 0.0
+            && self.normal == [0.0; 3]
+            && self.distortion == 0.0
+            && !self.any_feature
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -162,7 +224,7 @@ fn backward_tile_row(
     chunk: &mut [f32],
     stride: usize,
     td: &mut TileData,
-    list: &mut Vec<(Hit, f32)>,
+    hits: &mut [PixelHits; 2],
 ) {
     let bins = &state.tiles;
     let proj = &state.proj;
@@ -170,7 +232,6 @@ fn backward_tile_row(
     let k = s.k();
     let nch = features.map_or(0, |f| f.channels);
     let o = s.outputs;
-    let mut win = [Hit::default(); super::forward::RING];
     let row_start = bins.offsets[(ty * bins.tiles_x) as usize];
     let y0 = ty * TILE;
     let y1 = (y0 + TILE).min(h);
@@ -184,147 +245,233 @@ fn backward_tile_row(
         let ids = &bins.ids[p0 as usize..p1 as usize];
         let tile_rows = &mut chunk[(p0 - row_start) as usize * stride..(p1 - row_start) as usize * stride];
         td.load(proj, ids, s.alpha_min);
+        hits[0].reserve_tile(td.n);
+        hits[1].reserve_tile(td.n);
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
+        let pixel_grads = |x: u32, y: u32| {
+            let pix = (y * w + x) as usize;
+            let mut pg = PixelGrads {
+                colour: if o.colour { get3(&grads.v_colour, pix) } else { [0.0; 3] },
+                alpha: get1(&grads.v_alpha, pix),
+                depth: if o.depth { get1(&grads.v_depth, pix) } else { 0.0 },
+                median: if o.median_depth { get1(&grads.v_median_depth, pix) } else { 0.0 },
+                normal: if o.normal { get3(&grads.v_normal, pix) } else { [0.0; 3] },
+                distortion: if o.distortion { get1(&grads.v_distortion, pix) } else { 0.0 },
+                features: [0.0; MAX_FEATURES],
+                any_feature: false,
+            };
+            if has_f {
+                pg.features[..nch].copy_from_slice(&grads.v_features[pix * nch..(pix + 1) * nch]);
+                pg.any_feature = pg.features[..nch].iter().any(|&g| g != 0.0);
+            }
+            (!pg.is_zero()).then_some(pg)
+        };
         for y in y0..y1 {
-            for x in x0..x1 {
-                let pix = (y * w + x) as usize;
-                let v_c = if o.colour { get3(&grads.v_colour, pix) } else { [0.0; 3] };
-                let v_alpha = get1(&grads.v_alpha, pix);
-                let v_depth = if o.depth { get1(&grads.v_depth, pix) } else { 0.0 };
-                let v_median = if o.median_depth { get1(&grads.v_median_depth, pix) } else { 0.0 };
-                let v_n = if o.normal { get3(&grads.v_normal, pix) } else { [0.0; 3] };
-                let v_dist = if o.distortion { get1(&grads.v_distortion, pix) } else { 0.0 };
-                let mut v_f = [0.0f32; MAX_FEATURES];
-                let mut any_f = false;
-                if has_f {
-                    v_f[..nch].copy_from_slice(&grads.v_features[pix * nch..(pix + 1) * nch]);
-                    any_f = v_f[..nch].iter().any(|&g| g != 0.0);
+            // Pixels in pairs, as the forward composites them (`composite_two_pixels`).
+            for x in (x0..x1).step_by(2) {
+                let mut todo: [Option<(u32, PixelGrads)>; 2] = [None, None];
+                let mut count = 0;
+                for xx in x..(x + 2).min(x1) {
+                    if let Some(pg) = pixel_grads(xx, y) {
+                        todo[count] = Some((xx, pg));
+                        count += 1;
+                    }
                 }
-                if v_c == [0.0; 3]
-                    && v_alpha == 0.0
-                    && v_depth == 0.0
-                    && v_median == 0.0
-                    && v_n == [0.0; 3]
-                    && v_dist == 0.0
-                    && !any_f
-                {
+                if count == 0 {
                     continue;
                 }
-                let (pxf, pyf) = (x as f32 + 0.5, y as f32 + 0.5);
-                list.clear();
-                let (tf, _) = composite_pixel(
+                let centre =
+                    |i: usize| todo[i].as_ref().map_or((0.0, 0.0), |(xx, _)| (*xx as f32 + 0.5, y as f32 + 0.5));
+                let pf = [centre(0), centre(1)];
+                let [ha, hb] = hits;
+                ha.len = 0;
+                hb.len = 0;
+                let [(ta, _), (tb, _)] = composite_two_pixels(
                     td,
-                    pxf,
-                    pyf,
+                    pf,
+                    count == 2,
                     s,
                     k,
-                    &mut win,
                     #[inline(always)]
-                    |hit, t| list.push((*hit, t)),
+                    |li, z, alpha, t| ha.push(li, z, alpha, t),
+                    #[inline(always)]
+                    |li, z, alpha, t| hb.push(li, z, alpha, t),
                 );
-                if list.is_empty() {
-                    continue;
-                }
-                // Totals over the pixel.
-                let (mut a_tot, mut d_tot, mut m1, mut m2) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
-                let mut median_j = usize::MAX;
-                for (j, (hit, t)) in list.iter().enumerate() {
-                    let wgt = hit.alpha * t;
-                    d_tot += wgt * hit.z;
-                    a_tot += wgt;
-                    if v_dist != 0.0 {
-                        let m = norm_depth(hit.z, s.near, s.far);
-                        m1 += wgt * m;
-                        m2 += wgt * m * m;
+                for (i, (h, tf)) in [(ha, ta), (hb, tb)].into_iter().enumerate().take(count) {
+                    if h.len == 0 {
+                        continue;
                     }
-                    if *t > 0.5 {
-                        median_j = j;
-                    }
-                }
-                let (v_dd, v_a) = if a_tot > 0.0 {
-                    (v_depth / a_tot, v_alpha - v_depth * d_tot / (a_tot * a_tot))
-                } else {
-                    (0.0, v_alpha)
-                };
-                let dm_scale = s.far / (s.far - s.near) * s.near;
-                let mut acc = tf * dot3(v_c, s.background);
-                for j in (0..list.len()).rev() {
-                    let (hit, t) = list[j];
-                    let li = hit.li as usize;
-                    let id = td.ids[li] as usize;
-                    let wgt = hit.alpha * t;
-                    let row = &mut tile_rows[li * stride..(li + 1) * stride];
-                    let mut q = v_a + v_dd * hit.z;
-                    let mut v_z = wgt * v_dd;
-                    if o.colour {
-                        let col = td.colour[li];
-                        q += dot3(v_c, col);
-                        for ch in 0..3 {
-                            row[ROW_COLOUR + ch] += wgt * v_c[ch];
-                        }
-                    }
-                    if o.normal {
-                        q += dot3(v_n, td.normal[li]);
-                        for ch in 0..3 {
-                            row[ROW_NORMAL + ch] += wgt * v_n[ch];
-                        }
-                    }
-                    if v_dist != 0.0 {
-                        let m = norm_depth(hit.z, s.near, s.far);
-                        q += v_dist * (m * m * a_tot - 2.0 * m * m1 + m2);
-                        let dm_dz = dm_scale / (hit.z * hit.z);
-                        v_z += v_dist * 2.0 * wgt * (m * a_tot - m1) * dm_dz;
-                    }
-                    if any_f {
-                        let fe = features.unwrap();
-                        let src = &fe.data[id * nch..(id + 1) * nch];
-                        for ch in 0..nch {
-                            q += v_f[ch] * src[ch];
-                            row[ROW_FEAT + ch] += wgt * v_f[ch];
-                        }
-                    }
-                    if j == median_j {
-                        v_z += v_median;
-                    }
-                    let v_alpha_j = t * q - acc / (1.0 - hit.alpha);
-                    acc += wgt * q;
-
-                    // α = o·G → ρ → (u, v) or μ₂D, and z.
-                    let mut v_rho = 0.0;
-                    if !hit.clamped {
-                        let op = td.op[li];
-                        row[ROW_OPACITY] += hit.g * v_alpha_j;
-                        v_rho = -0.5 * hit.g * op * v_alpha_j;
-                    }
-                    let twv = [td.twx[li], td.twy[li], td.twz[li]];
-                    if hit.is3d {
-                        let (u, v) = (hit.u, hit.v);
-                        let v_u = 2.0 * u * v_rho + twv[0] * v_z;
-                        let v_v = 2.0 * v * v_rho + twv[1] * v_z;
-                        let kk = [pxf * twv[0] - td.tux[li], pxf * twv[1] - td.tuy[li], pxf * twv[2] - td.tuz[li]];
-                        let ll = [pyf * twv[0] - td.tvx[li], pyf * twv[1] - td.tvy[li], pyf * twv[2] - td.tvz[li]];
-                        let inv_hz = 1.0 / (kk[0] * ll[1] - kk[1] * ll[0]);
-                        let v_h = [v_u * inv_hz, v_v * inv_hz, -(v_u * u + v_v * v) * inv_hz];
-                        let v_k = cross(ll, v_h);
-                        let v_l = cross(v_h, kk);
-                        for a in 0..3 {
-                            row[ROW_TU + a] -= v_k[a];
-                            row[ROW_TV + a] -= v_l[a];
-                            row[ROW_TW + a] += pxf * v_k[a] + pyf * v_l[a];
-                        }
-                        row[ROW_TW] += u * v_z;
-                        row[ROW_TW + 1] += v * v_z;
-                        row[ROW_TW + 2] += v_z;
-                    } else {
-                        let dx = td.mx[li] - pxf;
-                        let dy = td.my[li] - pyf;
-                        row[ROW_MEAN2D] += 4.0 * dx * v_rho;
-                        row[ROW_MEAN2D + 1] += 4.0 * dy * v_rho;
-                        row[ROW_TW + 2] += v_z;
-                    }
+                    h.pad();
+                    let pg = &todo[i].as_ref().unwrap().1;
+                    pixel_backward(td, s, features, h, tf, pf[i].0, pf[i].1, pg, tile_rows, stride);
                 }
             }
         }
     }
+}
+
+/// The gradient rows of one pixel's blended hits, 16 hits at a time, back to front. With
+/// w_j = α_j T_j and every output O = Σ_j w_j q_j + T_n b: ∂O/∂α_j = T_j q_j − S_j/(1 − α_j),
+/// S_j = Σ_{k>j} w_k q_k + T_n b (a suffix sum: within a group across lanes, between groups
+/// a running total). The hit's (u, v), G and branch are recomputed from its candidate with the
+/// forward's own lane arithmetic (`splat_eval`), so they are the forward's values bit for bit.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn pixel_backward(
+    td: &TileData,
+    s: &RasterSettings,
+    features: Option<Features>,
+    hits: &PixelHits,
+    tf: f32,
+    pxf: f32,
+    pyf: f32,
+    pg: &PixelGrads,
+    tile_rows: &mut [f32],
+    stride: usize,
+) {
+    let o = s.outputs;
+    let nch = features.map_or(0, |f| f.channels);
+    let n = hits.len;
+    let groups = n.div_ceil(16);
+    let splat = f32x16::splat;
+    let zero = f32x16::ZERO;
+    let (near, far) = (s.near, s.far);
+    let m_scale = splat(far / (far - near));
+    let norm = |z: f32x16| m_scale * (f32x16::ONE - splat(near) / z);
+
+    // Totals over the pixel: A = Σw, D = Σwz, M1 = Σwm, M2 = Σwm²; the median hit.
+    let (mut a_tot, mut d_tot, mut m1, mut m2) = (zero, zero, zero, zero);
+    let mut above_half = 0usize;
+    for gi in 0..groups {
+        let j = gi * 16;
+        let (z, t) = (load16(&hits.z, j), load16(&hits.t, j));
+        let wgt = load16(&hits.alpha, j) * t;
+        a_tot += wgt;
+        d_tot += wgt * z;
+        if pg.distortion != 0.0 {
+            let m = norm(z);
+            m1 += wgt * m;
+            m2 += wgt * m * m;
+        }
+        above_half += t.simd_gt(splat(0.5)).to_bitmask().count_ones() as usize;
+    }
+    let (a_tot, d_tot, m1, m2) = (a_tot.reduce_add(), d_tot.reduce_add(), m1.reduce_add(), m2.reduce_add());
+    // T is non-increasing along the blend order, so the hits with T > 0.5 come first.
+    let median_j = above_half.wrapping_sub(1);
+    let (v_dd, v_a) =
+        if a_tot > 0.0 { (pg.depth / a_tot, pg.alpha - pg.depth * d_tot / (a_tot * a_tot)) } else { (0.0, pg.alpha) };
+    let dm_scale = far / (far - near) * near;
+
+    let mut carry =
+        tf * (pg.colour[0] * s.background[0] + pg.colour[1] * s.background[1] + pg.colour[2] * s.background[2]);
+    for gi in (0..groups).rev() {
+        let j = gi * 16;
+        let live = (n - j).min(16);
+        let li: [u32; 16] = hits.li[j..j + 16].try_into().unwrap();
+        let tile_n = td.n;
+        let at = lanes::Gather16::new(li, live, tile_n);
+        let (z, alpha, t) = (load16(&hits.z, j), load16(&hits.alpha, j), load16(&hits.t, j));
+        let wgt = alpha * t;
+        let mut q = splat(v_a) + splat(v_dd) * z;
+        let mut v_z = wgt * splat(v_dd);
+        let mut cols = [zero; 16];
+        let mut extra = [zero; 2 + MAX_FEATURES];
+        let at3 = |ch: u32| lanes::Gather16::new(li.map(|i| 3 * i + ch), live, 3 * tile_n);
+        if o.colour {
+            for ch in 0..3 {
+                let c = at3(ch as u32).from(td.colour.as_flattened());
+                q += splat(pg.colour[ch]) * c;
+                cols[ROW_COLOUR + ch] = wgt * splat(pg.colour[ch]);
+            }
+        }
+        if o.normal {
+            for ch in 0..3 {
+                let nv = at3(ch as u32).from(td.normal.as_flattened());
+                q += splat(pg.normal[ch]) * nv;
+                let g = wgt * splat(pg.normal[ch]);
+                if ROW_NORMAL + ch < 16 {
+                    cols[ROW_NORMAL + ch] = g;
+                } else {
+                    extra[ROW_NORMAL + ch - 16] = g;
+                }
+            }
+        }
+        if pg.distortion != 0.0 {
+            let m = norm(z);
+            q += splat(pg.distortion) * (m * m * splat(a_tot) - splat(2.0) * m * splat(m1) + splat(m2));
+            let dm_dz = splat(dm_scale) / (z * z);
+            v_z += splat(pg.distortion * 2.0) * wgt * (m * splat(a_tot) - splat(m1)) * dm_dz;
+        }
+        if pg.any_feature {
+            let fe = features.unwrap();
+            let ids: [u32; 16] = std::array::from_fn(|l| if l < live { td.ids[li[l] as usize] } else { 0 });
+            // Row starts id·nch (all < (N − 1)·nch + 1); channel ch gathers from data[ch..].
+            let rows_at = lanes::Gather16::new(ids.map(|i| i * nch as u32), live, fe.data.len() + 1 - nch);
+            for ch in 0..nch {
+                let f = rows_at.from(&fe.data[ch..]);
+                q += splat(pg.features[ch]) * f;
+                extra[ROW_FEAT - 16 + ch] = wgt * splat(pg.features[ch]);
+            }
+        }
+        if median_j >= j && median_j < j + 16 {
+            let mut vz = v_z.to_array();
+            vz[median_j - j] += pg.median;
+            v_z = f32x16::new(vz);
+        }
+        // ∂O/∂α_j; padding lanes (w = 0) add nothing to the running total and are not written.
+        let wq = wgt * q;
+        let suffix = splat(carry) + lanes::suffix_sum_exclusive(wq);
+        carry += wq.reduce_add();
+        let v_alpha = t * q - suffix / (f32x16::ONE - alpha);
+
+        // α = o·G → ρ → (u, v) or μ₂D, and z.
+        let gat = |v: &[f32]| at.from(v);
+        let tu = [gat(&td.tux), gat(&td.tuy), gat(&td.tuz)];
+        let tv = [gat(&td.tvx), gat(&td.tvy), gat(&td.tvz)];
+        let tw = [gat(&td.twx), gat(&td.twy), gat(&td.twz)];
+        let mean2d = [gat(&td.mx), gat(&td.my)];
+        let op = gat(&td.op);
+        let e = splat_eval(pxf, pyf, tu, tv, tw, mean2d);
+        let (g, _, clamped) = splat_alpha(e.rho, op);
+        cols[ROW_OPACITY] = clamped.select(zero, g * v_alpha);
+        let v_rho = clamped.select(zero, splat(-0.5) * g * op * v_alpha);
+        // Ray–plane branch.
+        let (u, v) = (e.u, e.v);
+        let v_u = splat(2.0) * u * v_rho + tw[0] * v_z;
+        let v_v = splat(2.0) * v * v_rho + tw[1] * v_z;
+        let inv_hz = f32x16::ONE / e.hz;
+        let v_h = [v_u * inv_hz, v_v * inv_hz, -(v_u * u + v_v * v) * inv_hz];
+        let (kk, ll) = (e.k, e.l);
+        let v_k = cross(ll, v_h);
+        let v_l = cross(v_h, kk);
+        let (px, py) = (splat(pxf), splat(pyf));
+        let is3d = e.is3d;
+        let tw_z = [u * v_z, v * v_z, v_z];
+        for a in 0..3 {
+            cols[ROW_TU + a] = is3d.select(-v_k[a], zero);
+            cols[ROW_TV + a] = is3d.select(-v_l[a], zero);
+            cols[ROW_TW + a] = is3d.select(px * v_k[a] + py * v_l[a] + tw_z[a], zero);
+        }
+        // Screen-space filter branch.
+        cols[ROW_MEAN2D] = is3d.select(zero, splat(4.0) * (mean2d[0] - px) * v_rho);
+        cols[ROW_MEAN2D + 1] = is3d.select(zero, splat(4.0) * (mean2d[1] - py) * v_rho);
+        cols[ROW_TW + 2] = is3d.select(cols[ROW_TW + 2], v_z);
+
+        lanes::add_columns(tile_rows, stride, 0, &li, live, cols, 16);
+        let n_extra = stride - 16;
+        if n_extra <= 16 {
+            lanes::add_columns(tile_rows, stride, 16, &li, live, extra[..16].try_into().unwrap(), n_extra);
+        } else {
+            lanes::add_columns(tile_rows, stride, 16, &li, live, extra[..16].try_into().unwrap(), 16);
+            let mut rest = [zero; 16];
+            rest[..n_extra - 16].copy_from_slice(&extra[16..n_extra]);
+            lanes::add_columns(tile_rows, stride, 32, &li, live, rest, n_extra - 16);
+        }
+    }
+}
+
+#[inline(always)]
+fn cross(a: [f32x16; 3], b: [f32x16; 3]) -> [f32x16; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }

@@ -18,9 +18,11 @@
 //! features Σ w f.
 //!
 //! Parallel decomposition: rayon over rows of tiles; inside a tile, pixel by pixel over the
-//! tile's list (copied into a local structure of arrays), 16 candidates at a time (f32x16);
-//! the window is per hit: for K ≤ 16 two AVX-512 registers (branchless insert and pop),
-//! otherwise a ring buffer. Nothing per pixel is saved: the
+//! tile's list (copied into a local structure of arrays), 16 candidates at a time (f32x16).
+//! The window is per hit: for K ≤ 16 three AVX-512 registers (branchless insert and pop),
+//! otherwise a ring buffer. The blend is scalar, inlined into the window loop: that loop waits
+//! on the window's compare → permute chain, and the blend's arithmetic fills those cycles (a
+//! separate 16-hit SIMD blend pass measured no faster). Nothing per pixel is saved: the
 //! backward pass re-runs `composite_pixel`.
 
 use super::project::{self, Projected};
@@ -56,7 +58,16 @@ pub(crate) struct TileData {
     /// Colour and normal per candidate (only when loaded with `shading`).
     pub colour: Vec<[f32; 3]>,
     pub normal: Vec<[f32; 3]>,
+    /// What the forward blends per candidate, one 16-lane row each (`load_blend_rows`):
+    /// colour, normal, 1 (for Σ w), then up to `ROW_FEATURES` feature channels.
+    pub blend_rows: Vec<f32x16>,
 }
+
+/// Lanes of a blend row: colour 0..3, normal 3..6, 1 at 6, features from 7.
+const BLEND_ONE: usize = 6;
+const BLEND_FEAT: usize = 7;
+/// Feature channels that fit in a blend row; more are blended channel by channel.
+const ROW_FEATURES: usize = 16 - BLEND_FEAT;
 
 impl TileData {
     pub fn load(&mut self, p: &Projected, ids: &[u32], alpha_min: f32) {
@@ -103,85 +114,118 @@ impl TileData {
         self.normal.clear();
         self.normal.extend(ids.iter().map(|&i| p.normal[i as usize]));
     }
-}
 
-/// A hit as the window holds it.
-#[derive(Clone, Copy, Debug, Default)]
-pub(crate) struct Hit {
-    pub z: f32,
-    pub alpha: f32,
-    /// e^{−ρ/2}.
-    pub g: f32,
-    pub u: f32,
-    pub v: f32,
-    /// Index into the tile's list.
-    pub li: u32,
-    /// true: ray–plane branch (ρ₃ ≤ ρ₂).
-    pub is3d: bool,
-    /// α was clamped at 0.99.
-    pub clamped: bool,
+    /// Fill `blend_rows` (after `load`): a hit is then blended with one 16-lane multiply-add.
+    pub fn load_blend_rows(&mut self, features: Option<Features>) {
+        let nch = features.map_or(0, |f| f.channels);
+        self.blend_rows.clear();
+        for (li, &id) in self.ids.iter().enumerate() {
+            let mut row = [0.0f32; 16];
+            if let Some(c) = self.colour.get(li) {
+                row[..3].copy_from_slice(c);
+            }
+            row[3..6].copy_from_slice(&self.normal[li]);
+            row[BLEND_ONE] = 1.0;
+            if let Some(fe) = features
+                && nch <= ROW_FEATURES
+            {
+                row[BLEND_FEAT..BLEND_FEAT + nch].copy_from_slice(&fe.data[id as usize * nch..(id as usize + 1) * nch]);
+            }
+            self.blend_rows.push(f32x16::new(row));
+        }
+    }
 }
 
 /// Ring-buffer size of the window (a power of two ≥ MAX_WINDOW).
 pub(crate) const RING: usize = 32;
 const _: () = assert!(RING >= MAX_WINDOW && RING.is_power_of_two());
 
-/// Sixteen candidates evaluated at once.
+/// Depth and α of sixteen candidates evaluated at once (all the window needs; the backward
+/// recomputes the rest of a blended hit from its candidate).
 #[derive(Default)]
 pub(crate) struct Lanes {
     pub z: [f32; 16],
     pub alpha: [f32; 16],
-    pub g: [f32; 16],
-    pub u: [f32; 16],
-    pub v: [f32; 16],
-    /// Bit l: ray–plane branch.
-    pub is3d: u32,
-    /// Bit l: α clamped at 0.99.
-    pub clamped: u32,
 }
 
 #[inline(always)]
-fn load16(v: &[f32], j: usize) -> f32x16 {
+pub(crate) fn load16(v: &[f32], j: usize) -> f32x16 {
     f32x16::new(v[j..j + 16].try_into().unwrap())
 }
 
-/// Evaluate candidates j0..j0 + 16 of the tile at pixel centre (px, py) (SIMD over
-/// candidates; forward and backward both use this, so they make identical decisions).
-/// Returns the hit mask; `out` is only written when the mask is non-zero.
+/// One pixel centre against 16 candidates (lane-wise): the ray–splat terms k, l, h.z, the
+/// hit's (u, v), ρ and z, and which branch (ray–plane or screen-space filter) decided.
+/// `eval16` (from the tile arrays) and the backward (from gathered candidates) both call it,
+/// so their decisions and values agree bit for bit.
+pub(crate) struct SplatEval {
+    pub k: [f32x16; 3],
+    pub l: [f32x16; 3],
+    pub hz: f32x16,
+    pub u: f32x16,
+    pub v: f32x16,
+    pub rho: f32x16,
+    pub z: f32x16,
+    /// All-ones lanes: the ray–plane branch (ρ₃ ≤ ρ₂).
+    pub is3d: f32x16,
+}
+
 #[inline(always)]
-pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alpha_min: f32, out: &mut Lanes) -> u32 {
+pub(crate) fn splat_eval(
+    px: f32,
+    py: f32,
+    tu: [f32x16; 3],
+    tv: [f32x16; 3],
+    tw: [f32x16; 3],
+    mean2d: [f32x16; 2],
+) -> SplatEval {
     let pxv = f32x16::splat(px);
     let pyv = f32x16::splat(py);
-    let (twx, twy, twz) = (load16(&td.twx, j0), load16(&td.twy, j0), load16(&td.twz, j0));
-    let kx = pxv * twx - load16(&td.tux, j0);
-    let ky = pxv * twy - load16(&td.tuy, j0);
-    let kz = pxv * twz - load16(&td.tuz, j0);
-    let lx = pyv * twx - load16(&td.tvx, j0);
-    let ly = pyv * twy - load16(&td.tvy, j0);
-    let lz = pyv * twz - load16(&td.tvz, j0);
-    let hx = ky * lz - kz * ly;
-    let hy = kz * lx - kx * lz;
-    let hz = kx * ly - ky * lx;
+    let k = [pxv * tw[0] - tu[0], pxv * tw[1] - tu[1], pxv * tw[2] - tu[2]];
+    let l = [pyv * tw[0] - tv[0], pyv * tw[1] - tv[1], pyv * tw[2] - tv[2]];
+    let hx = k[1] * l[2] - k[2] * l[1];
+    let hy = k[2] * l[0] - k[0] * l[2];
+    let hz = k[0] * l[1] - k[1] * l[0];
     let inv = f32x16::ONE / hz;
     let u = hx * inv;
     let v = hy * inv;
     let rho3 = u * u + v * v;
-    let dx = load16(&td.mx, j0) - pxv;
-    let dy = load16(&td.my, j0) - pyv;
+    let dx = mean2d[0] - pxv;
+    let dy = mean2d[1] - pyv;
     let rho2 = f32x16::splat(2.0) * (dx * dx + dy * dy);
     let is3d = rho3.simd_le(rho2);
     let rho = is3d.select(rho3, rho2);
-    let z = is3d.select(u * twx + v * twy + twz, twz);
-    let ok = hz.simd_ne(f32x16::ZERO) & z.simd_ge(f32x16::splat(near));
+    let z = is3d.select(u * tw[0] + v * tw[1] + tw[2], tw[2]);
+    SplatEval { k, l, hz, u, v, rho, z, is3d }
+}
+
+/// (G = e^{−ρ/2}, α = min(0.99, o·G), lanes where the clamp bit).
+#[inline(always)]
+pub(crate) fn splat_alpha(rho: f32x16, opacity: f32x16) -> (f32x16, f32x16, f32x16) {
+    let g = (f32x16::splat(-0.5) * rho).exp();
+    let a = opacity * g;
+    let clamp = f32x16::splat(0.99);
+    (g, a.fast_min(clamp), a.simd_gt(clamp))
+}
+
+/// Evaluate candidates j0..j0 + 16 of the tile at pixel centre (px, py) (SIMD over
+/// candidates; forward and backward make identical decisions through `splat_eval`).
+/// Returns the hit mask; `out` is only written when the mask is non-zero.
+#[inline(always)]
+pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alpha_min: f32, out: &mut Lanes) -> u32 {
+    let e = splat_eval(
+        px,
+        py,
+        [load16(&td.tux, j0), load16(&td.tuy, j0), load16(&td.tuz, j0)],
+        [load16(&td.tvx, j0), load16(&td.tvy, j0), load16(&td.tvz, j0)],
+        [load16(&td.twx, j0), load16(&td.twy, j0), load16(&td.twz, j0)],
+        [load16(&td.mx, j0), load16(&td.my, j0)],
+    );
+    let ok = e.hz.simd_ne(f32x16::ZERO) & e.z.simd_ge(f32x16::splat(near));
     // Cheap conservative pre-test (no exp): most groups of a tile's list miss a given pixel.
-    if (ok & rho.simd_le(load16(&td.rho_max, j0))).to_bitmask() == 0 {
+    if (ok & e.rho.simd_le(load16(&td.rho_max, j0))).to_bitmask() == 0 {
         return 0;
     }
-    let g = (f32x16::splat(-0.5) * rho).exp();
-    let a = load16(&td.op, j0) * g;
-    let clamp = f32x16::splat(0.99);
-    let clamped = a.simd_gt(clamp);
-    let alpha = a.fast_min(clamp);
+    let (_, alpha, _) = splat_alpha(e.rho, load16(&td.op, j0));
     let ok = ok & alpha.simd_ge(f32x16::splat(alpha_min));
     let mut mask = ok.to_bitmask();
     let rest = td.n - j0;
@@ -189,13 +233,8 @@ pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alph
         mask &= (1u32 << rest) - 1;
     }
     if mask != 0 {
-        out.z = z.to_array();
+        out.z = e.z.to_array();
         out.alpha = alpha.to_array();
-        out.g = g.to_array();
-        out.u = u.to_array();
-        out.v = v.to_array();
-        out.is3d = is3d.to_bitmask();
-        out.clamped = clamped.to_bitmask();
     }
     mask
 }
@@ -274,10 +313,10 @@ impl Window for RingWindow {
     }
 }
 
-/// Up to 16 entries held in three AVX-512 registers: the insertion point is one masked compare
-/// and a popcount, the shift one lane permute and two masked moves per register, so an unpredictable
-/// insertion depth costs no branch misses (the ring's shift loop mispredicts on every
-/// out-of-order hit).
+/// Up to 16 entries held in three AVX-512 registers (lanes at or above len hold z = +∞): the
+/// insertion point is one compare and a few mask-register operations, the shift one masked
+/// lane permute and one masked move per register, so an unpredictable insertion depth costs
+/// no branch misses (the ring's shift loop mispredicts on every out-of-order hit).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
 pub(crate) struct RegWindow {
     z: std::arch::x86_64::__m512,
@@ -327,8 +366,10 @@ impl Window for RegWindow {
         use std::arch::x86_64::*;
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
-            let left = _mm512_setr_epi32(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 15);
-            self.z = _mm512_permutexvar_ps(left, self.z);
+            // Lanes move down one; lane 15 takes +∞ (index 16: the second source), keeping
+            // every lane at or above len at +∞.
+            let left = _mm512_setr_epi32(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16);
+            self.z = _mm512_permutex2var_ps(self.z, left, _mm512_set1_ps(f32::INFINITY));
             self.s = _mm512_permutexvar_epi32(left, self.s);
             self.a = _mm512_permutexvar_ps(left, self.a);
             self.len -= 1;
@@ -340,14 +381,13 @@ impl Window for RegWindow {
         // SAFETY: this type exists only when avx512f is enabled at compile time.
         unsafe {
             let zv = _mm512_set1_ps(z);
-            // The live entries greater than z are a contiguous run ending at len − 1 (the
-            // window is sorted): they move up one lane and z lands just below the run (or at
-            // len). Mask arithmetic only, no popcount or variable shift: the compare → move
-            // chain is what successive inserts wait on.
-            let live: u16 = ((1u32 << self.len) - 1) as u16;
-            let greater = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(live, self.z, zv);
-            let moved: u16 = greater << 1;
-            let here: u16 = (greater | (live + 1)) & !moved;
+            // Lanes holding a depth > z: a run from the insertion point to lane 15 (the window
+            // is sorted and lanes at or above len hold +∞). The run moves up one lane and z
+            // lands at its start. Masks stay in mask registers: the compare → permute chain is
+            // what successive inserts wait on.
+            let greater = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(self.z, zv);
+            let moved = _kshiftli_mask16::<1>(greater);
+            let here = _kandn_mask16(moved, greater);
             let right = _mm512_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14);
             let z1 = _mm512_mask_permutexvar_ps(self.z, moved, right, self.z);
             self.z = _mm512_mask_mov_ps(z1, here, zv);
@@ -360,60 +400,10 @@ impl Window for RegWindow {
     }
 }
 
-/// Where a hit waits between entering the window and being blended: the slot the window
-/// carries names it.
-pub(crate) trait HitSlots {
-    /// Keep lane `l` of the group at `j0` (its z and α travel in the window); return its slot.
-    fn keep(&mut self, lanes: &Lanes, l: usize, j0: usize) -> u32;
-    /// The hit in `slot` has been blended.
-    fn release(&mut self, slot: u32);
-}
-
-/// The forward's slots: the candidate's index in the tile list (blending needs nothing else).
-pub(crate) struct ListIndex;
-
-impl HitSlots for ListIndex {
-    #[inline(always)]
-    fn keep(&mut self, _lanes: &Lanes, l: usize, j0: usize) -> u32 {
-        (j0 + l) as u32
-    }
-    #[inline(always)]
-    fn release(&mut self, _slot: u32) {}
-}
-
-/// The backward's slots: full hit records in a pool of RING entries (a bitmask of those in use).
-pub(crate) struct HitPool<'a> {
-    pub hits: &'a mut [Hit; RING],
-    used: u32,
-}
-
-impl HitSlots for HitPool<'_> {
-    #[inline(always)]
-    fn keep(&mut self, lanes: &Lanes, l: usize, j0: usize) -> u32 {
-        // A free slot exists: fewer than k ≤ 32 entries are in use.
-        let slot = (!self.used).trailing_zeros();
-        self.used |= 1u32 << slot;
-        self.hits[slot as usize] = Hit {
-            z: lanes.z[l],
-            alpha: lanes.alpha[l],
-            g: lanes.g[l],
-            u: lanes.u[l],
-            v: lanes.v[l],
-            li: (j0 + l) as u32,
-            is3d: lanes.is3d >> l & 1 != 0,
-            clamped: lanes.clamped >> l & 1 != 0,
-        };
-        slot
-    }
-    #[inline(always)]
-    fn release(&mut self, slot: u32) {
-        self.used &= !(1u32 << slot);
-    }
-}
-
-/// Composite one pixel through the sorted window, calling `blend(hit, T_before)` for every
-/// blended hit in blend order (the backward: full hit records). Returns (T_final, candidates
-/// evaluated).
+/// Composite one pixel through the sorted window: `blend(li, z, α, T_before)` for every
+/// blended hit in blend order, li its index in the tile list. The forward and the backward both
+/// call this (or `composite_two_pixels`), so they blend the same hits in the same order.
+/// Returns (T_final, candidates evaluated).
 #[inline(always)]
 pub(crate) fn composite_pixel(
     td: &TileData,
@@ -421,117 +411,130 @@ pub(crate) fn composite_pixel(
     py: f32,
     s: &RasterSettings,
     k: usize,
-    win: &mut [Hit; RING],
-    mut blend: impl FnMut(&Hit, f32),
+    blend: impl FnMut(usize, f32, f32, f32),
 ) -> (f32, u32) {
-    let pool = HitPool { hits: win, used: 0 };
-    composite(
-        td,
-        px,
-        py,
-        s,
-        k,
-        pool,
-        #[inline(always)]
-        |p: &HitPool, slot, _z, _alpha, t| blend(&p.hits[slot as usize], t),
-    )
+    composite_two_pixels(td, [(px, py), (px, py)], false, s, k, blend, |_, _, _, _| {})[0]
 }
 
-/// The forward's compositor: the same decisions as `composite_pixel`, but no hit record is
-/// built; `blend(li, z, α, T_before)` with li the candidate's index in the tile list.
+/// Two pixels (the second only if `two`) through their own windows in one pass over the
+/// tile's candidates. Each window's insert is a compare → mask → permute chain that the next
+/// insert waits on; two independent chains let the core overlap them. Per pixel the hits,
+/// their order and T are exactly those of compositing it alone.
 #[inline(always)]
-pub(crate) fn composite_pixel_forward(
+pub(crate) fn composite_two_pixels(
     td: &TileData,
-    px: f32,
-    py: f32,
+    p: [(f32, f32); 2],
+    two: bool,
     s: &RasterSettings,
     k: usize,
-    mut blend: impl FnMut(usize, f32, f32, f32),
-) -> (f32, u32) {
-    composite(
-        td,
-        px,
-        py,
-        s,
-        k,
-        ListIndex,
-        // Inlined like the caller's blend, so its accumulators stay in registers.
-        #[inline(always)]
-        |_: &ListIndex, li, z, alpha, t| blend(li as usize, z, alpha, t),
-    )
-}
-
-/// Pick the window for K (registers for K ≤ 16 with AVX-512, else the ring buffer).
-#[inline(always)]
-fn composite<S: HitSlots>(
-    td: &TileData,
-    px: f32,
-    py: f32,
-    s: &RasterSettings,
-    k: usize,
-    slots: S,
-    blend: impl FnMut(&S, u32, f32, f32, f32),
-) -> (f32, u32) {
+    blend0: impl FnMut(usize, f32, f32, f32),
+    blend1: impl FnMut(usize, f32, f32, f32),
+) -> [(f32, u32); 2] {
+    // Registers for K ≤ 16 with AVX-512, else the ring buffer.
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     if k <= 16 {
-        return composite_with(RegWindow::new(), slots, td, px, py, s, k, blend);
+        return composite_with([RegWindow::new(), RegWindow::new()], td, p, two, s, k, blend0, blend1);
     }
-    composite_with(RingWindow::new(), slots, td, px, py, s, k, blend)
+    composite_with([RingWindow::new(), RingWindow::new()], td, p, two, s, k, blend0, blend1)
+}
+
+/// One pixel's state in the candidate loop.
+struct PixelRun<W> {
+    window: W,
+    t: f32,
+    /// Still compositing (not stopped by the T cut-off, or not in use).
+    live: bool,
+    /// Candidates evaluated (set when the pixel stops early).
+    evaluated: u32,
+    lanes: Lanes,
+}
+
+impl<W: Window> PixelRun<W> {
+    /// Take hit `l` of the current group (candidate j0 + l): when the window is full, blend its
+    /// nearest entry first, or stop if that blend would take T below the cut-off.
+    #[inline(always)]
+    fn take(&mut self, l: usize, j0: usize, k: usize, t_min: f32, blend: &mut impl FnMut(usize, f32, f32, f32)) {
+        let slot = (j0 + l) as u32;
+        if self.window.len() == k {
+            let alpha = self.window.front_alpha();
+            let next = self.t * (1.0 - alpha);
+            if next < t_min {
+                self.live = false;
+                self.evaluated = slot + 1;
+                return;
+            }
+            blend(self.window.front_slot(), self.window.front_z(), alpha, self.t);
+            self.t = next;
+            self.window.pop_front();
+        }
+        self.window.insert(self.lanes.z[l], slot, self.lanes.alpha[l]);
+    }
+
+    /// Blend what the window still holds, nearest first.
+    #[inline(always)]
+    fn flush(&mut self, t_min: f32, blend: &mut impl FnMut(usize, f32, f32, f32)) {
+        while self.live && self.window.len() > 0 {
+            let alpha = self.window.front_alpha();
+            let next = self.t * (1.0 - alpha);
+            if next < t_min {
+                break;
+            }
+            blend(self.window.front_slot(), self.window.front_z(), alpha, self.t);
+            self.t = next;
+            self.window.pop_front();
+        }
+    }
 }
 
 /// The per-pixel loop: evaluate the tile's candidates 16 at a time, insert each hit into the
-/// window; when the window is full, blend its nearest entry first (stopping before a blend
-/// that would take T below the cut-off); at the end flush the window nearest-first.
-/// `blend(slots, slot, z, α, T_before)`.
+/// window (its slot: the candidate's index in the tile list); when the window is full, blend
+/// its nearest entry first (stopping before a blend that would take T below the cut-off); at
+/// the end flush the window nearest-first.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn composite_with<W: Window, S: HitSlots>(
-    mut window: W,
-    mut slots: S,
+fn composite_with<W: Window>(
+    windows: [W; 2],
     td: &TileData,
-    px: f32,
-    py: f32,
+    p: [(f32, f32); 2],
+    two: bool,
     s: &RasterSettings,
     k: usize,
-    mut blend: impl FnMut(&S, u32, f32, f32, f32),
-) -> (f32, u32) {
-    let mut t = 1.0f32;
+    mut blend0: impl FnMut(usize, f32, f32, f32),
+    mut blend1: impl FnMut(usize, f32, f32, f32),
+) -> [(f32, u32); 2] {
     let t_min = s.transmittance_min;
-    let mut lanes = Lanes::default();
+    let n = td.n as u32;
+    let [w0, w1] = windows;
+    let mut a = PixelRun { window: w0, t: 1.0, live: true, evaluated: n, lanes: Lanes::default() };
+    let mut b = PixelRun { window: w1, t: 1.0, live: two, evaluated: n, lanes: Lanes::default() };
     let mut j0 = 0;
-    while j0 < td.n {
-        let mut m = eval16(td, j0, px, py, s.near, s.alpha_min, &mut lanes);
-        while m != 0 {
-            let l = m.trailing_zeros() as usize;
-            m &= m - 1;
-            if window.len() == k {
-                let alpha = window.front_alpha();
-                let next = t * (1.0 - alpha);
-                if next < t_min {
-                    return (t, (j0 + l + 1) as u32);
+    while j0 < td.n && (a.live || b.live) {
+        let mut ma = if a.live { eval16(td, j0, p[0].0, p[0].1, s.near, s.alpha_min, &mut a.lanes) } else { 0 };
+        let mut mb = if b.live { eval16(td, j0, p[1].0, p[1].1, s.near, s.alpha_min, &mut b.lanes) } else { 0 };
+        // Alternate the two pixels' hits so their window chains interleave.
+        while (ma | mb) != 0 {
+            if ma != 0 {
+                let l = ma.trailing_zeros() as usize;
+                ma &= ma - 1;
+                a.take(l, j0, k, t_min, &mut blend0);
+                if !a.live {
+                    ma = 0;
                 }
-                let slot = window.front_slot() as u32;
-                blend(&slots, slot, window.front_z(), alpha, t);
-                t = next;
-                slots.release(slot);
-                window.pop_front();
             }
-            let slot = slots.keep(&lanes, l, j0);
-            window.insert(lanes.z[l], slot, lanes.alpha[l]);
+            if mb != 0 {
+                let l = mb.trailing_zeros() as usize;
+                mb &= mb - 1;
+                b.take(l, j0, k, t_min, &mut blend1);
+                if !b.live {
+                    mb = 0;
+                }
+            }
         }
         j0 += 16;
     }
-    while window.len() > 0 {
-        let alpha = window.front_alpha();
-        let next = t * (1.0 - alpha);
-        if next < t_min {
-            break;
-        }
-        blend(&slots, window.front_slot() as u32, window.front_z(), alpha, t);
-        t = next;
-        window.pop_front();
-    }
-    (t, td.n as u32)
+    a.flush(t_min, &mut blend0);
+    b.flush(t_min, &mut blend1);
+    [(a.t, a.evaluated), (b.t, b.evaluated)]
 }
 
 /// Normalised depth for the distortion loss (2DGS): m = far/(far − near) · (1 − near/z).
@@ -548,6 +551,81 @@ pub(crate) const REC_MEDIAN: usize = 5;
 pub(crate) const REC_NORMAL: usize = 6;
 pub(crate) const REC_DIST: usize = 9;
 pub(crate) const REC_FEAT: usize = 10;
+
+/// One pixel's running sums in the forward.
+#[derive(Default)]
+struct PixelSums {
+    /// Σ w · blend row: colour, normal, Σ w (rather than 1 − T: no cancellation when α is
+    /// tiny) and the features that fit.
+    row: f32x16,
+    /// Features beyond the row, channel by channel.
+    features: [f32; MAX_FEATURES],
+    /// Σ w z.
+    depth: f32,
+    /// Running Σ w m and Σ w m² of the distortion recurrence, and the distortion itself.
+    m1: f32,
+    m2: f32,
+    distortion: f32,
+    median: f32,
+}
+
+impl PixelSums {
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn blend(
+        &mut self,
+        td: &TileData,
+        s: &RasterSettings,
+        features: Option<Features>,
+        li: usize,
+        z: f32,
+        alpha: f32,
+        t: f32,
+    ) {
+        let wgt = alpha * t;
+        self.row = td.blend_rows[li].mul_add(f32x16::splat(wgt), self.row);
+        self.depth += wgt * z;
+        if s.outputs.distortion {
+            let m = norm_depth(z, s.near, s.far);
+            self.distortion += (m * m * (1.0 - t) + self.m2 - 2.0 * m * self.m1) * wgt;
+            self.m1 += m * wgt;
+            self.m2 += m * m * wgt;
+        }
+        if t > 0.5 {
+            self.median = z;
+        }
+        if let Some(fe) = features
+            && fe.channels > ROW_FEATURES
+        {
+            let nch = fe.channels;
+            let id = td.ids[li] as usize;
+            let src = &fe.data[id * nch..(id + 1) * nch];
+            for ch in 0..nch {
+                self.features[ch] += wgt * src[ch];
+            }
+        }
+    }
+
+    /// The pixel's record (T_final `tf` for the background).
+    #[inline(always)]
+    fn write(&self, r: &mut [f32], tf: f32, s: &RasterSettings, nch: usize) {
+        let row = self.row.to_array();
+        let a = row[BLEND_ONE];
+        for ch in 0..3 {
+            r[REC_COLOUR + ch] = if s.outputs.colour { row[ch] } else { 0.0 } + tf * s.background[ch];
+            r[REC_NORMAL + ch] = row[3 + ch];
+        }
+        r[REC_ALPHA] = a;
+        r[REC_DEPTH] = if a > 0.0 { self.depth / a } else { 0.0 };
+        r[REC_MEDIAN] = self.median;
+        r[REC_DIST] = self.distortion;
+        if nch <= ROW_FEATURES {
+            r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
+        } else {
+            r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&self.features[..nch]);
+        }
+    }
+}
 
 /// Render the surfels from `camera`. Panics if `features.data.len() != N × channels` or
 /// channels > 16 (programming errors, not user input).
@@ -612,6 +690,8 @@ pub fn render(
 }
 
 #[allow(clippy::too_many_arguments)]
+// Not inlined into rayon's closure: profiles then name the forward's tile loop.
+#[inline(never)]
 fn render_tile_row(
     proj: &Projected,
     bins: &TileBins,
@@ -626,7 +706,6 @@ fn render_tile_row(
     let w = camera.width;
     let h = camera.height;
     let k = s.k();
-    let o = s.outputs;
     let nch = features.map_or(0, |f| f.channels);
     let mut evals = 0u64;
     let y0 = ty * TILE;
@@ -635,71 +714,34 @@ fn render_tile_row(
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
         td.load(proj, ids, s.alpha_min);
+        td.load_blend_rows(features);
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
         for y in y0..y1 {
-            for x in x0..x1 {
-                let (pxf, pyf) = (x as f32 + 0.5, y as f32 + 0.5);
-                let mut c = [0.0f32; 3];
-                let mut nrm = [0.0f32; 3];
-                let mut f = [0.0f32; MAX_FEATURES];
-                let (mut d, mut m1, mut m2, mut dist, mut median) = (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
-                // Σ w rather than 1 − T: no cancellation when α is tiny.
-                let mut asum = 0.0f32;
-                // Inlined so the accumulators stay in registers across blends.
-                let (tf, ev) = composite_pixel_forward(
+            // Pixels in pairs (see `composite_two_pixels`); a lone last one when x1 − x0 is odd.
+            for x in (x0..x1).step_by(2) {
+                let two = x + 1 < x1;
+                let (mut sa, mut sb) = (PixelSums::default(), PixelSums::default());
+                let pf = [(x as f32 + 0.5, y as f32 + 0.5), (x as f32 + 1.5, y as f32 + 0.5)];
+                // Inlined so the sums stay in registers across blends.
+                let [(ta, eva), (tb, evb)] = composite_two_pixels(
                     td,
-                    pxf,
-                    pyf,
+                    pf,
+                    two,
                     s,
                     k,
                     #[inline(always)]
-                    |li, z, alpha, t| {
-                        let wgt = alpha * t;
-                        let id = td.ids[li] as usize;
-                        if o.colour {
-                            let col = td.colour[li];
-                            c[0] += wgt * col[0];
-                            c[1] += wgt * col[1];
-                            c[2] += wgt * col[2];
-                        }
-                        if o.normal {
-                            let nn = td.normal[li];
-                            nrm[0] += wgt * nn[0];
-                            nrm[1] += wgt * nn[1];
-                            nrm[2] += wgt * nn[2];
-                        }
-                        d += wgt * z;
-                        asum += wgt;
-                        if o.distortion {
-                            let m = norm_depth(z, s.near, s.far);
-                            dist += (m * m * (1.0 - t) + m2 - 2.0 * m * m1) * wgt;
-                            m1 += m * wgt;
-                            m2 += m * m * wgt;
-                        }
-                        if t > 0.5 {
-                            median = z;
-                        }
-                        if let Some(fe) = features {
-                            let src = &fe.data[id * nch..(id + 1) * nch];
-                            for ch in 0..nch {
-                                f[ch] += wgt * src[ch];
-                            }
-                        }
-                    },
+                    |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
+                    #[inline(always)]
+                    |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
                 );
-                evals += ev as u64;
-                let a = asum;
-                let r = &mut chunk[((y - y0) * w + x) as usize * stride..][..stride];
-                for ch in 0..3 {
-                    r[REC_COLOUR + ch] = c[ch] + tf * s.background[ch];
-                    r[REC_NORMAL + ch] = nrm[ch];
+                let at = |x: u32| ((y - y0) * w + x) as usize * stride;
+                sa.write(&mut chunk[at(x)..][..stride], ta, s, nch);
+                evals += eva as u64;
+                if two {
+                    sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch);
+                    evals += evb as u64;
                 }
-                r[REC_ALPHA] = a;
-                r[REC_DEPTH] = if a > 0.0 { d / a } else { 0.0 };
-                r[REC_MEDIAN] = median;
-                r[REC_DIST] = dist;
-                r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&f[..nch]);
             }
         }
     }
@@ -726,13 +768,12 @@ pub fn sorting_error(state: &ForwardState, camera: &Camera, settings: &RasterSet
                     &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize],
                     settings.alpha_min,
                 );
-                let mut win = [Hit::default(); RING];
                 let mut acc = [0.0f64; 4];
                 for y in (ty * TILE..((ty + 1) * TILE).min(camera.height)).filter(|y| y % step == 0) {
                     for x in (tx * TILE..((tx + 1) * TILE).min(camera.width)).filter(|x| x % step == 0) {
                         list.clear();
-                        composite_pixel(td, x as f32 + 0.5, y as f32 + 0.5, settings, k, &mut win, |h, t| {
-                            list.push((h.alpha * t, h.z))
+                        composite_pixel(td, x as f32 + 0.5, y as f32 + 0.5, settings, k, |_, z, alpha, t| {
+                            list.push((alpha * t, z))
                         });
                         for j in 0..list.len() {
                             for i in 0..j {
@@ -777,8 +818,11 @@ mod window_tests {
                     ring.pop_front();
                     reg.pop_front();
                 } else {
+                    // Ties, beyond every entry (lands on top), below every entry, anywhere.
                     let z = match rng.random_range(0..10) {
-                        0..3 => 0.5, // ties
+                        0..3 => 0.5,
+                        3 => 1.0 + rng.random::<f32>(),
+                        4 => -rng.random::<f32>(),
                         _ => rng.random::<f32>(),
                     };
                     // Slots beyond u8 and u16: the forward stores tile-list indices.

@@ -11,6 +11,7 @@
 
 pub mod backward;
 pub mod forward;
+mod lanes;
 pub mod project;
 #[cfg(test)]
 pub mod reference;

@@ -238,6 +238,14 @@ fn ref_loss(r: &RefOut, w: &Weights) -> f64 {
 }
 
 fn check_gradients(s: &Surfels, cam: &Camera, set: &RasterSettings, ch: usize, seed: u64) {
+    check_gradients_with(s, cam, set, ch, seed, false);
+}
+
+/// `skip_kinks`: a parameter whose central difference changes with the step (h vs h/4) sits
+/// on a discontinuity of the loss (two hits swapping blend order, a hit switching between the
+/// ray–plane and filter branches): it is skipped, and at most 1 % may be. For dense scenes,
+/// where some of the many hit pairs cross within the step.
+fn check_gradients_with(s: &Surfels, cam: &Camera, set: &RasterSettings, ch: usize, seed: u64, skip_kinks: bool) {
     let n = s.len();
     let feats = random_features(n, ch, seed + 100);
     let px = (cam.width * cam.height) as usize;
@@ -262,8 +270,7 @@ fn check_gradients(s: &Surfels, cam: &Camera, set: &RasterSettings, ch: usize, s
     let r0 = render_ref(&base, cam, set, order);
     let d = max_diff(&out, &r0);
     assert!(d < 5e-4, "forward differs from the reference by {d}");
-    let h = 1e-5;
-    let fd = |edit: &dyn Fn(&mut RefScene, f64)| {
+    let central = |edit: &dyn Fn(&mut RefScene, f64), h: f64| {
         let mut p = base.clone();
         edit(&mut p, h);
         let lp = ref_loss(&render_ref(&p, cam, set, order), &w);
@@ -272,10 +279,22 @@ fn check_gradients(s: &Surfels, cam: &Camera, set: &RasterSettings, ch: usize, s
         let lm = ref_loss(&render_ref(&m, cam, set, order), &w);
         (lp - lm) / (2.0 * h)
     };
+    let kinks = std::cell::Cell::new(0usize);
+    let fd = |edit: &dyn Fn(&mut RefScene, f64)| {
+        let d = central(edit, 1e-5);
+        if skip_kinks && (d - central(edit, 2.5e-6)).abs() > 1e-3 * (1.0 + d.abs()) {
+            kinks.set(kinks.get() + 1);
+            return f64::NAN;
+        }
+        d
+    };
     let mut fails = vec![];
     let mut checked = 0;
     let mut nonzero = 0;
     let mut check = |name: String, a: f32, fdv: f64| {
+        if fdv.is_nan() {
+            return;
+        }
         checked += 1;
         if fdv.abs() > 1e-3 {
             nonzero += 1;
@@ -304,6 +323,7 @@ fn check_gradients(s: &Surfels, cam: &Camera, set: &RasterSettings, ch: usize, s
         }
     }
     assert!(fails.is_empty(), "{} of {checked} gradients wrong:\n{}", fails.len(), fails.join("\n"));
+    assert!(kinks.get() * 100 <= checked, "{} of {checked} parameters on a discontinuity", kinks.get());
     assert!(nonzero * 3 > checked, "too few non-zero gradients ({nonzero} of {checked}): the scene is degenerate");
 }
 
@@ -337,6 +357,34 @@ fn gradients_two_sided_window_reorders() {
     let diff = |x: &RefOut, y: &RefOut| (0..x.alpha.len()).any(|i| (x.colour[i][0] - y.colour[i][0]).abs() > 1e-6);
     assert!(diff(&a, &b) && diff(&a, &c), "window 2 equals another order: scene does not exercise reordering");
     check_gradients(&s, &cam, &set, 1, 2);
+}
+
+/// Pixels with more than 16 blended hits (the backward works in groups of 16 and carries the
+/// suffix sum from group to group) and 15 feature channels (the gradient row's tail spans two
+/// transposed groups).
+#[test]
+fn gradients_dense_pixels_many_groups_and_channels() {
+    use super::forward::{TileData, composite_pixel};
+    let s = random_scene(40, 26, (0.35, 0.7), (0.1, 0.5));
+    let cam = camera(16, 12);
+    let set = smooth(8, true);
+    let proj = super::project::project(&s, &cam, &set);
+    let bins = super::tiles::bin(&proj, cam.width, cam.height, set.alpha_min);
+    let mut td = TileData::default();
+    let mut most = 0;
+    for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
+        td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], set.alpha_min);
+        let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
+        for y in ty * TILE..((ty + 1) * TILE).min(cam.height) {
+            for x in tx * TILE..((tx + 1) * TILE).min(cam.width) {
+                let mut n = 0;
+                composite_pixel(&td, x as f32 + 0.5, y as f32 + 0.5, &set, set.k(), |_, _, _, _| n += 1);
+                most = most.max(n);
+            }
+        }
+    }
+    assert!(most > 32, "the scene must blend more than two groups of 16 at some pixel: {most}");
+    check_gradients_with(&s, &cam, &set, 15, 6, true);
 }
 
 #[test]
@@ -412,44 +460,6 @@ fn densification_gradient_is_the_screen_space_centre_gradient() {
         assert!((b.v_mean2d_norm[i] - (got[0].hypot(got[1]))).abs() < 1e-6);
     }
     assert!(seen > 5);
-}
-
-/// The forward's pool-free compositor and the backward's pool compositor blend the same
-/// hits in the same order with the same T and stop at the same candidate, for every window
-/// size (register and ring windows), on a random scene with many overlaps and ties.
-#[test]
-fn forward_compositor_matches_pool_compositor() {
-    use super::forward::{Hit, RING, TileData, composite_pixel, composite_pixel_forward};
-    let scene = random_scene(300, 5, (0.05, 0.25), (0.3, 0.95));
-    let camera = camera(48, 40);
-    let mut settings = RasterSettings::default();
-    let proj = super::project::project(&scene, &camera, &settings);
-    let bins = super::tiles::bin(&proj, camera.width, camera.height, settings.alpha_min);
-    let mut td = TileData::default();
-    let mut win = [Hit::default(); RING];
-    let mut blended = 0usize;
-    for k in [1usize, 3, 8, 16, 17, 32] {
-        settings.window = k;
-        for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
-            td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], settings.alpha_min);
-            let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
-            for y in ty * TILE..((ty + 1) * TILE).min(camera.height) {
-                for x in tx * TILE..((tx + 1) * TILE).min(camera.width) {
-                    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
-                    let (mut a, mut b) = (Vec::new(), Vec::new());
-                    let ra = composite_pixel(&td, px, py, &settings, k, &mut win, |h, t| {
-                        a.push((h.li as usize, h.z, h.alpha, t))
-                    });
-                    let rb =
-                        composite_pixel_forward(&td, px, py, &settings, k, |li, z, alpha, t| b.push((li, z, alpha, t)));
-                    assert_eq!(ra, rb, "k = {k}, pixel ({x}, {y})");
-                    assert_eq!(a, b, "k = {k}, pixel ({x}, {y})");
-                    blended += a.len();
-                }
-            }
-        }
-    }
-    assert!(blended > 10_000, "the scene must overlap: {blended} blends");
 }
 
 /// Tile culling by the exact footprint (tiles.rs `Footprint`) drops only (tile, surfel) pairs

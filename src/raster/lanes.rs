@@ -1,0 +1,230 @@
+//! Sixteen-lane helpers the backward pass uses to work on 16 blended hits at once: masked
+//! gathers from per-candidate arrays and a transposed add of per-hit gradient columns into the
+//! hits' (tile, surfel) gradient rows. AVX-512 when the build has it, plain loops otherwise
+//! (same results either way: a gather and a transpose do no arithmetic).
+
+use wide::f32x16;
+
+/// Sixteen indices, the first `live` of them in use, all below `limit` (checked once when
+/// built, so each gather from an array of at least `limit` entries needs one comparison).
+pub(crate) struct Gather16 {
+    idx: [u32; 16],
+    live: usize,
+    limit: usize,
+}
+
+impl Gather16 {
+    /// Panics if a live index is ≥ limit.
+    #[inline(always)]
+    pub fn new(idx: [u32; 16], live: usize, limit: usize) -> Self {
+        let max = idx[..live].iter().fold(0u32, |m, &i| m.max(i));
+        assert!(live <= 16 && (live == 0 || (max as usize) < limit) && limit <= i32::MAX as usize);
+        Gather16 { idx, live, limit }
+    }
+
+    /// base[idx[l]] for the live lanes, 0 elsewhere (those lanes read no memory). Panics if
+    /// `base` is shorter than the limit.
+    #[inline(always)]
+    pub fn from(&self, base: &[f32]) -> f32x16 {
+        assert!(base.len() >= self.limit);
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+        {
+            use std::arch::x86_64::*;
+            // SAFETY: avx512f is enabled at compile time; every live index is below `limit`
+            // (checked in `new`) ≤ base.len(), and masked-off lanes touch no memory.
+            unsafe {
+                let vi = _mm512_loadu_si512(self.idx.as_ptr() as *const _);
+                let m: __mmask16 = ((1u32 << self.live) - 1) as u16;
+                let g = _mm512_mask_i32gather_ps::<4>(_mm512_setzero_ps(), m, vi, base.as_ptr());
+                std::mem::transmute::<__m512, f32x16>(g)
+            }
+        }
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512f")))]
+        {
+            f32x16::new(std::array::from_fn(|l| if l < self.live { base[self.idx[l] as usize] } else { 0.0 }))
+        }
+    }
+}
+
+/// 16 × 16 transpose: out[l] lane c = cols[c] lane l.
+#[inline(always)]
+pub(crate) fn transpose(cols: [f32x16; 16]) -> [f32x16; 16] {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    {
+        use std::arch::x86_64::*;
+        // SAFETY: avx512f is enabled at compile time; f32x16 and __m512 are both 64 bytes.
+        unsafe {
+            let r: [__m512; 16] = std::mem::transmute::<[f32x16; 16], [__m512; 16]>(cols);
+            let pd = |x: __m512| _mm512_castps_pd(x);
+            let ps = |x: __m512d| _mm512_castpd_ps(x);
+            // Interleave pairs of rows, then pairs of pairs (2 × 2 and 4 × 4 blocks inside
+            // each 128-bit lane), then move 128-bit blocks twice.
+            let mut t = [_mm512_setzero_ps(); 16];
+            for i in 0..8 {
+                t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+                t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+            }
+            let mut u = [_mm512_setzero_ps(); 16];
+            for q in 0..4 {
+                let b = 4 * q;
+                u[b] = ps(_mm512_unpacklo_pd(pd(t[b]), pd(t[b + 2])));
+                u[b + 1] = ps(_mm512_unpackhi_pd(pd(t[b]), pd(t[b + 2])));
+                u[b + 2] = ps(_mm512_unpacklo_pd(pd(t[b + 1]), pd(t[b + 3])));
+                u[b + 3] = ps(_mm512_unpackhi_pd(pd(t[b + 1]), pd(t[b + 3])));
+            }
+            for h in 0..2 {
+                let b = 8 * h;
+                for i in 0..4 {
+                    t[b + i] = _mm512_shuffle_f32x4::<0x88>(u[b + i], u[b + 4 + i]);
+                    t[b + 4 + i] = _mm512_shuffle_f32x4::<0xdd>(u[b + i], u[b + 4 + i]);
+                }
+            }
+            let mut out = [_mm512_setzero_ps(); 16];
+            for i in 0..8 {
+                out[i] = _mm512_shuffle_f32x4::<0x88>(t[i], t[8 + i]);
+                out[8 + i] = _mm512_shuffle_f32x4::<0xdd>(t[i], t[8 + i]);
+            }
+            std::mem::transmute::<[__m512; 16], [f32x16; 16]>(out)
+        }
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512f")))]
+    {
+        f32x16::transpose(cols)
+    }
+}
+
+/// For each of the first `live` lanes l: rows[idx[l]·stride + off + c] += cols[c] lane l for
+/// c < ncols (≤ 16). The live indices must be distinct (they are: a candidate is blended at
+/// most once per pixel). Panics if a row range is out of bounds.
+#[inline(always)]
+pub(crate) fn add_columns(
+    rows: &mut [f32],
+    stride: usize,
+    off: usize,
+    idx: &[u32; 16],
+    live: usize,
+    cols: [f32x16; 16],
+    ncols: usize,
+) {
+    debug_assert!(ncols <= 16 && off + ncols <= stride);
+    if ncols <= 3 {
+        // A transpose costs 64 shuffles whatever the column count: not worth it for a few.
+        let c: [[f32; 16]; 3] = std::array::from_fn(|c| cols[c].to_array());
+        for l in 0..live {
+            let base = idx[l] as usize * stride + off;
+            for (k, r) in rows[base..base + ncols].iter_mut().enumerate() {
+                *r += c[k][l];
+            }
+        }
+        return;
+    }
+    let per_hit = transpose(cols);
+    for l in 0..live {
+        let base = idx[l] as usize * stride + off;
+        let row = &mut rows[base..base + ncols];
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+        {
+            use std::arch::x86_64::*;
+            // SAFETY: avx512f is enabled at compile time; the masked load and store touch
+            // exactly row[..ncols], which the slice above bounds-checked.
+            unsafe {
+                let m: __mmask16 = ((1u32 << ncols) - 1) as u16;
+                let p = row.as_mut_ptr();
+                let cur = _mm512_maskz_loadu_ps(m, p);
+                let add = std::mem::transmute::<f32x16, __m512>(per_hit[l]);
+                _mm512_mask_storeu_ps(p, m, _mm512_add_ps(cur, add));
+            }
+        }
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512f")))]
+        {
+            let v = per_hit[l].to_array();
+            for (r, a) in row.iter_mut().zip(v) {
+                *r += a;
+            }
+        }
+    }
+}
+
+/// Lane l gets x[l + S] (0 for l + S ≥ 16): lanes move down by S.
+#[inline(always)]
+fn shift_down<const S: i32>(x: f32x16) -> f32x16 {
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    {
+        use std::arch::x86_64::*;
+        // SAFETY: avx512f is enabled at compile time; f32x16 and __m512i are both 64 bytes.
+        unsafe {
+            let v = std::mem::transmute::<f32x16, __m512i>(x);
+            let r = match S {
+                1 => _mm512_alignr_epi32::<1>(_mm512_setzero_si512(), v),
+                2 => _mm512_alignr_epi32::<2>(_mm512_setzero_si512(), v),
+                4 => _mm512_alignr_epi32::<4>(_mm512_setzero_si512(), v),
+                8 => _mm512_alignr_epi32::<8>(_mm512_setzero_si512(), v),
+                _ => unreachable!(),
+            };
+            std::mem::transmute::<__m512i, f32x16>(r)
+        }
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512f")))]
+    {
+        let a = x.to_array();
+        f32x16::new(std::array::from_fn(|l| if l + (S as usize) < 16 { a[l + S as usize] } else { 0.0 }))
+    }
+}
+
+/// Exclusive suffix sums across lanes: lane l gets Σ_{m > l} x[m] (log-step scan).
+#[inline(always)]
+pub(crate) fn suffix_sum_exclusive(x: f32x16) -> f32x16 {
+    let mut s = x + shift_down::<1>(x);
+    s += shift_down::<2>(s);
+    s += shift_down::<4>(s);
+    s += shift_down::<8>(s);
+    shift_down::<1>(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn transpose_matches_definition() {
+        let cols: [f32x16; 16] = std::array::from_fn(|c| f32x16::new(std::array::from_fn(|l| (c * 100 + l) as f32)));
+        let t = transpose(cols);
+        for l in 0..16 {
+            for c in 0..16 {
+                assert_eq!(t[l].to_array()[c], (c * 100 + l) as f32, "lane {l}, column {c}");
+            }
+        }
+    }
+
+    #[test]
+    fn gather_masks_dead_lanes_and_add_columns_touches_only_its_rows() {
+        let base: Vec<f32> = (0..40).map(|i| i as f32 * 0.5).collect();
+        let idx: [u32; 16] = std::array::from_fn(|l| (39 - 2 * l) as u32);
+        let g = Gather16::new(idx, 5, 40).from(&base).to_array();
+        for l in 0..16 {
+            assert_eq!(g[l], if l < 5 { base[idx[l] as usize] } else { 0.0 });
+        }
+        let stride = 7;
+        let mut rows = vec![1.0f32; 20 * stride];
+        let idx: [u32; 16] = std::array::from_fn(|l| (19 - l) as u32);
+        let cols: [f32x16; 16] = std::array::from_fn(|c| f32x16::new(std::array::from_fn(|l| (c * 16 + l) as f32)));
+        add_columns(&mut rows, stride, 2, &idx, 6, cols, 3);
+        for r in 0..20 {
+            for k in 0..stride {
+                let lane = 19 - r;
+                let want = if lane < 6 && (2..5).contains(&k) { 1.0 + ((k - 2) * 16 + lane) as f32 } else { 1.0 };
+                assert_eq!(rows[r * stride + k], want, "row {r}, entry {k}");
+            }
+        }
+    }
+
+    #[test]
+    fn exclusive_suffix_sum() {
+        // Powers of two: every partial sum is exact in f32, so the scan order does not matter.
+        let x = f32x16::new(std::array::from_fn(|l| (1u32 << l) as f32));
+        let s = suffix_sum_exclusive(x).to_array();
+        for l in 0..16 {
+            assert_eq!(s[l], ((1u32 << 16) - (1u32 << (l + 1))) as f32, "suffix lane {l}");
+        }
+    }
+}

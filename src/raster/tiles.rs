@@ -10,8 +10,9 @@
 //! A surfel joins only the tiles of its bounding box that its α ≥ α_min footprint touches
 //! ([`Footprint`]): dropped pairs would evaluate to α < α_min at every pixel anyway.
 //!
-//! Parallel decomposition: counting and scattering are serial O(pairs); the per-tile depth sort
-//! runs with rayon over tiles.
+//! Parallel decomposition: the per-surfel tile lists (with the footprint test) are built with
+//! rayon over chunks of surfels; counting and scattering are serial O(pairs); the per-tile
+//! depth sort runs with rayon over tiles.
 
 use super::TILE;
 use super::project::Projected;
@@ -48,30 +49,50 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32) -> TileBins {
     let ntiles = (tiles_x * tiles_y) as usize;
     let n = p.rect.len();
     // Pass 1: each surfel's tiles (its rectangle row by row, minus the tiles its α ≥ α_min
-    // region misses) in generation order; pair counts per tile.
-    let mut pair_offsets = Vec::with_capacity(n + 1);
-    pair_offsets.push(0u32);
-    let mut pair_tiles: Vec<u32> = Vec::with_capacity(n * 4);
-    let mut counts = vec![0u32; ntiles + 1];
-    for i in 0..n {
-        let r = p.rect[i];
-        if r[0] <= r[2] && r[1] <= r[3] {
-            // A one-row or one-column rectangle almost never loses a tile (the footprint is
-            // connected and spans its box): skip the test there, it costs more than it saves
-            // on the many small surfels of training (rand 10k: +0.06 % evaluations).
-            let footprint = if r[2] > r[0] && r[3] > r[1] { Footprint::new(p, i, alpha_min) } else { None };
-            for ty in r[1]..=r[3] {
-                for tx in r[0]..=r[2] {
-                    if footprint.as_ref().is_none_or(|f| f.touches_tile(tx, ty)) {
-                        let t = ty * tiles_x + tx;
-                        counts[t as usize + 1] += 1;
-                        pair_tiles.push(t);
+    // region misses) in generation order, in parallel over chunks of surfels (the footprint
+    // test is f64 work); chunks are joined in surfel order, so the result does not depend on
+    // the thread count.
+    let chunk = n.div_ceil(4 * rayon::current_num_threads()).max(2048);
+    let parts: Vec<(Vec<u32>, Vec<u32>)> = (0..n.div_ceil(chunk))
+        .into_par_iter()
+        .map(|c| {
+            let range = c * chunk..((c + 1) * chunk).min(n);
+            let mut tiles_of: Vec<u32> = Vec::with_capacity(range.len() * 4);
+            let mut ends: Vec<u32> = Vec::with_capacity(range.len());
+            for i in range {
+                let r = p.rect[i];
+                if r[0] <= r[2] && r[1] <= r[3] {
+                    // A one-row or one-column rectangle almost never loses a tile (the footprint
+                    // is connected and spans its box): skip the test there, it costs more than
+                    // it saves on the many small surfels of training (rand 10k: +0.06 %
+                    // evaluations).
+                    let footprint = if r[2] > r[0] && r[3] > r[1] { Footprint::new(p, i, alpha_min) } else { None };
+                    for ty in r[1]..=r[3] {
+                        for tx in r[0]..=r[2] {
+                            if footprint.as_ref().is_none_or(|f| f.touches_tile(tx, ty)) {
+                                tiles_of.push(ty * tiles_x + tx);
+                            }
+                        }
                     }
                 }
+                ends.push(tiles_of.len() as u32);
             }
+            (tiles_of, ends)
+        })
+        .collect();
+    let mut pair_offsets = Vec::with_capacity(n + 1);
+    pair_offsets.push(0u32);
+    let mut pair_tiles: Vec<u32> = Vec::with_capacity(parts.iter().map(|(t, _)| t.len()).sum());
+    let mut counts = vec![0u32; ntiles + 1];
+    for (tiles_of, ends) in &parts {
+        let base = pair_tiles.len() as u32;
+        pair_offsets.extend(ends.iter().map(|e| base + e));
+        for &t in tiles_of {
+            counts[t as usize + 1] += 1;
         }
-        pair_offsets.push(pair_tiles.len() as u32);
+        pair_tiles.extend_from_slice(tiles_of);
     }
+    drop(parts);
     let total = pair_tiles.len();
     for t in 0..ntiles {
         counts[t + 1] += counts[t];

@@ -129,7 +129,14 @@ impl PbrScene {
             window: self.window,
             two_sided: false,
             background: bg,
-            outputs: Outputs { colour: true, depth: false, median_depth: false, normal: true, distortion: false },
+            outputs: Outputs {
+                colour: true,
+                depth: false,
+                median_depth: false,
+                normal: true,
+                distortion: false,
+                surface_depth: false,
+            },
             ..RasterSettings::default()
         };
         let (out, _) = raster::render(&self.surfels, cam, &settings, Some(Features { data: features, channels: ch }));

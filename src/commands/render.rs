@@ -142,8 +142,14 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         _ => bail!("radiogs render needs --run RUN, or --ply F.ply with --cameras transforms.json"),
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating output folder {}", args.out.display()))?;
-    let outputs =
-        Outputs { colour: true, depth: args.aux, median_depth: args.aux, normal: args.aux, distortion: args.aux };
+    let outputs = Outputs {
+        colour: true,
+        depth: args.aux,
+        median_depth: args.aux,
+        normal: args.aux,
+        distortion: args.aux,
+        surface_depth: args.aux,
+    };
     let settings = RasterSettings { window: args.k, two_sided, outputs, ..Default::default() };
     let trace_settings = crate::trace::TraceSettings { two_sided, ..Default::default() };
     if args.mode == RenderMode::Traced && args.aux {
@@ -185,6 +191,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             let grey = |v: &[f32]| Image { width: w, height: h, channels: 1, data: v.to_vec() };
             write_image(&args.out.join(format!("{}_depth.exr", cam.name)), &grey(&img.depth))?;
             write_image(&args.out.join(format!("{}_median_depth.exr", cam.name)), &grey(&img.median_depth))?;
+            write_image(&args.out.join(format!("{}_surface_depth.exr", cam.name)), &grey(&img.surface_depth))?;
             write_image(&args.out.join(format!("{}_distortion.exr", cam.name)), &grey(&img.distortion))?;
             let normal =
                 Image { width: w, height: h, channels: 3, data: img.normal.iter().flatten().copied().collect() };

@@ -392,7 +392,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         window: cfg.window,
         two_sided: cfg.two_sided,
         background: bg,
-        outputs: Outputs { colour: true, depth: false, median_depth: false, normal: true, distortion: false },
+        outputs: Outputs {
+            colour: true,
+            depth: false,
+            median_depth: false,
+            normal: true,
+            distortion: false,
+            surface_depth: false,
+        },
         ..RasterSettings::default()
     };
     let bar = indicatif::ProgressBar::new(views.len() as u64);

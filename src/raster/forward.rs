@@ -15,7 +15,7 @@
 //! Outputs: colour Σ w c + T·bg, alpha Σ w (= 1 − T, summed to avoid cancellation), depth Σ w z / α, median depth (z of the last
 //! blend made while T > 0.5), normal Σ w n, distortion by the 2DGS recurrence
 //! Σ_j w_j (m_j² A_j + M2_j − 2 m_j M1_j) (A, M1, M2 running sums of w, w m, w m²),
-//! features Σ w f.
+//! features Σ w f, and (forward only) the surface-aware depth of GauS-SLAM.
 //!
 //! Parallel decomposition: rayon over rows of tiles; inside a tile, pixel by pixel over the
 //! tile's list (copied into a local structure of arrays), 16 candidates at a time (f32x16).
@@ -450,10 +450,20 @@ struct PixelRun<W> {
 }
 
 impl<W: Window> PixelRun<W> {
-    /// Take hit `l` of the current group (candidate j0 + l): when the window is full, blend its
-    /// nearest entry first, or stop if that blend would take T below the cut-off.
+    /// Take the lowest hit of `mask` (non-zero) in the current group (candidate j0 + l) and
+    /// clear its bit: when the window is full, blend its nearest entry first, or stop (clearing
+    /// the whole mask) if that blend would take T below the cut-off.
     #[inline(always)]
-    fn take(&mut self, l: usize, j0: usize, k: usize, t_min: f32, blend: &mut impl FnMut(usize, f32, f32, f32)) {
+    fn take_next(
+        &mut self,
+        mask: &mut u32,
+        j0: usize,
+        k: usize,
+        t_min: f32,
+        blend: &mut impl FnMut(usize, f32, f32, f32),
+    ) {
+        let l = mask.trailing_zeros() as usize;
+        *mask &= *mask - 1;
         let slot = (j0 + l) as u32;
         if self.window.len() == k {
             let alpha = self.window.front_alpha();
@@ -461,6 +471,7 @@ impl<W: Window> PixelRun<W> {
             if next < t_min {
                 self.live = false;
                 self.evaluated = slot + 1;
+                *mask = 0;
                 return;
             }
             blend(self.window.front_slot(), self.window.front_z(), alpha, self.t);
@@ -514,20 +525,10 @@ fn composite_with<W: Window>(
         // Alternate the two pixels' hits so their window chains interleave.
         while (ma | mb) != 0 {
             if ma != 0 {
-                let l = ma.trailing_zeros() as usize;
-                ma &= ma - 1;
-                a.take(l, j0, k, t_min, &mut blend0);
-                if !a.live {
-                    ma = 0;
-                }
+                a.take_next(&mut ma, j0, k, t_min, &mut blend0);
             }
             if mb != 0 {
-                let l = mb.trailing_zeros() as usize;
-                mb &= mb - 1;
-                b.take(l, j0, k, t_min, &mut blend1);
-                if !b.live {
-                    mb = 0;
-                }
+                b.take_next(&mut mb, j0, k, t_min, &mut blend1);
             }
         }
         j0 += 16;
@@ -550,7 +551,8 @@ pub(crate) const REC_DEPTH: usize = 4;
 pub(crate) const REC_MEDIAN: usize = 5;
 pub(crate) const REC_NORMAL: usize = 6;
 pub(crate) const REC_DIST: usize = 9;
-pub(crate) const REC_FEAT: usize = 10;
+pub(crate) const REC_SURFACE: usize = 10;
+pub(crate) const REC_FEAT: usize = 11;
 
 /// One pixel's running sums in the forward.
 #[derive(Default)]
@@ -567,6 +569,9 @@ struct PixelSums {
     m2: f32,
     distortion: f32,
     median: f32,
+    /// Surface-aware depth: Σ w ẑ and Σ w ẑ² (see `RenderOutput::surface_depth`).
+    surface: f32,
+    surface2: f32,
 }
 
 impl PixelSums {
@@ -594,6 +599,20 @@ impl PixelSums {
         if t > 0.5 {
             self.median = z;
         }
+        if s.outputs.surface_depth {
+            // GauS-SLAM: hits behind the running median are pulled toward it by their distance
+            // in units of the spread of what is already blended (Σ_{earlier} w = 1 − T).
+            let dm = self.median;
+            let zhat = if self.surface > 0.0 {
+                let var = ((self.surface2 - 2.0 * self.surface * dm) / (1.0 - t) + dm * dm).max(1e-7);
+                let conf = (-(z - dm) * (z - dm) / (4.0 * var)).exp();
+                conf * z + (1.0 - conf) * dm
+            } else {
+                z
+            };
+            self.surface += wgt * zhat;
+            self.surface2 += wgt * zhat * zhat;
+        }
         if let Some(fe) = features
             && fe.channels > ROW_FEATURES
         {
@@ -619,6 +638,7 @@ impl PixelSums {
         r[REC_DEPTH] = if a > 0.0 { self.depth / a } else { 0.0 };
         r[REC_MEDIAN] = self.median;
         r[REC_DIST] = self.distortion;
+        r[REC_SURFACE] = if a > 0.0 { self.surface / a } else { 0.0 };
         if nch <= ROW_FEATURES {
             r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
         } else {
@@ -678,6 +698,9 @@ pub fn render(
     }
     if o.distortion {
         out.distortion = (0..px).into_par_iter().map(|i| rec(i)[REC_DIST]).collect();
+    }
+    if o.surface_depth {
+        out.surface_depth = (0..px).into_par_iter().map(|i| rec(i)[REC_SURFACE]).collect();
     }
     if nch > 0 {
         out.features = buf.par_chunks(stride).flat_map_iter(|r| r[REC_FEAT..].iter().copied()).collect();

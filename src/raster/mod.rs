@@ -37,22 +37,35 @@ pub struct Outputs {
     pub median_depth: bool,
     pub normal: bool,
     pub distortion: bool,
+    /// The surface-aware depth of GauS-SLAM (see `RenderOutput::surface_depth`). Off in every
+    /// preset: it is a forward-only output for users who need depth without hidden-surface
+    /// bleed.
+    #[serde(default)]
+    pub surface_depth: bool,
 }
 
 impl Default for Outputs {
+    /// Every output with a gradient on (not `surface_depth`).
     fn default() -> Self {
-        Outputs { colour: true, depth: true, median_depth: true, normal: true, distortion: true }
+        Outputs { colour: true, depth: true, median_depth: true, normal: true, distortion: true, surface_depth: false }
     }
 }
 
 impl Outputs {
     /// Only colour (and alpha).
     pub fn colour_only() -> Self {
-        Outputs { colour: true, depth: false, median_depth: false, normal: false, distortion: false }
+        Outputs { colour: true, ..Outputs::none() }
     }
     /// Nothing but alpha (e.g. feature-only renders).
     pub fn none() -> Self {
-        Outputs { colour: false, depth: false, median_depth: false, normal: false, distortion: false }
+        Outputs {
+            colour: false,
+            depth: false,
+            median_depth: false,
+            normal: false,
+            distortion: false,
+            surface_depth: false,
+        }
     }
 }
 
@@ -123,6 +136,12 @@ pub struct RenderOutput {
     pub distortion: Vec<f32>,
     /// Σ w f, pixel-major, `channels` values per pixel.
     pub features: Vec<f32>,
+    /// Surface-aware depth (GauS-SLAM): Σ w ẑ / Σ w, where a hit behind the running median
+    /// depth d_m (z of the last blend made while T > 0.5) is pulled toward it,
+    /// ẑ = c z + (1 − c) d_m, c = exp(−(z − d_m)² / (4 σ²)), σ² = Σ_{earlier} w (ẑ − d_m)² /
+    /// Σ_{earlier} w (≥ 1e-7); the first hit and hits up to the median keep ẑ = z. 0 where
+    /// nothing is blended. Forward only: no gradient.
+    pub surface_depth: Vec<f32>,
 }
 
 /// Gradients of the loss with respect to each output; an empty vector means zero.

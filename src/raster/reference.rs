@@ -57,6 +57,7 @@ pub struct RefOut {
     pub normal: Vec<[f64; 3]>,
     pub distortion: Vec<f64>,
     pub features: Vec<f64>,
+    pub surface_depth: Vec<f64>,
     /// Largest number of hits at one pixel.
     pub max_hits: usize,
 }
@@ -177,6 +178,7 @@ pub fn render_ref(scene: &RefScene, cam: &Camera, set: &RasterSettings, order: O
         normal: vec![[0.0; 3]; wd * ht],
         distortion: vec![0.0; wd * ht],
         features: vec![0.0; wd * ht * nch],
+        surface_depth: vec![0.0; wd * ht],
         max_hits: 0,
     };
     let (near_f, far_f) = (set.near as f64, set.far as f64);
@@ -282,7 +284,37 @@ pub fn render_ref(scene: &RefScene, cam: &Camera, set: &RasterSettings, order: O
                 }
             }
             out.distortion[pix] = dist;
+            out.surface_depth[pix] = surface_depth(&blended);
         }
     }
     out
+}
+
+/// GauS-SLAM's surface-aware depth from a pixel's blended (w, z) list, written from the
+/// definition: the running median d_m(i) is the z of the last hit j ≤ i blended while
+/// T_j > 0.5; σ²(i) the w-weighted mean of (ẑ_j − d_m(i))² over j < i (≥ 1e-7), summed
+/// directly rather than by the fast path's Σ w ẑ / Σ w ẑ² recurrence.
+fn surface_depth(blended: &[(f64, f64)]) -> f64 {
+    let mut t = 1.0;
+    let mut dm = 0.0;
+    let mut zhat: Vec<f64> = Vec::with_capacity(blended.len());
+    for (i, &(w, z)) in blended.iter().enumerate() {
+        if t > 0.5 {
+            dm = z;
+        }
+        let zh = if i == 0 {
+            z
+        } else {
+            let wsum: f64 = blended[..i].iter().map(|b| b.0).sum();
+            let spread: f64 = (0..i).map(|j| blended[j].0 * (zhat[j] - dm).powi(2)).sum();
+            let var = (spread / wsum).max(1e-7);
+            let conf = (-(z - dm).powi(2) / (4.0 * var)).exp();
+            conf * z + (1.0 - conf) * dm
+        };
+        zhat.push(zh);
+        // T before the next hit: w = α T.
+        t -= w;
+    }
+    let a: f64 = blended.iter().map(|b| b.0).sum();
+    if a > 0.0 { blended.iter().zip(&zhat).map(|(b, zh)| b.0 * zh).sum::<f64>() / a } else { 0.0 }
 }

@@ -462,6 +462,36 @@ fn densification_gradient_is_the_screen_space_centre_gradient() {
     assert!(seen > 5);
 }
 
+/// The surface-aware depth (GauS-SLAM) against the f64 reference, which computes it from each
+/// pixel's blended list by direct sums rather than the forward's running sums, for several
+/// windows on layered scenes; and it must differ from the plain expected depth (the pull acts).
+#[test]
+fn surface_depth_matches_reference() {
+    let cam = camera(40, 32);
+    let mut pulled = 0usize;
+    for (seed, k) in [(41u64, 1usize), (42, 4), (43, 8), (44, 16)] {
+        let s = random_scene(60, seed, (0.1, 0.3), (0.2, 0.8));
+        let set = RasterSettings {
+            window: k,
+            two_sided: true,
+            outputs: Outputs { surface_depth: true, ..Outputs::default() },
+            ..Default::default()
+        };
+        let (out, _) = render(&s, &cam, &set, None);
+        let r = render_ref(&RefScene::from_surfels(&s, None), &cam, &set, Order::Window(k));
+        let mut worst = 0.0f64;
+        for i in 0..out.alpha.len() {
+            let d = (out.surface_depth[i] as f64 - r.surface_depth[i]).abs();
+            worst = worst.max(d / (1.0 + r.surface_depth[i].abs()));
+            if (r.surface_depth[i] - r.depth[i]).abs() > 0.05 {
+                pulled += 1;
+            }
+        }
+        assert!(worst < 1e-3, "k = {k}: surface depth differs from the reference by {worst}");
+    }
+    assert!(pulled > 100, "the pull toward the median must change the depth somewhere ({pulled} pixels)");
+}
+
 /// Tile culling by the exact footprint (tiles.rs `Footprint`) drops only (tile, surfel) pairs
 /// whose α is below α_min at every pixel centre of the tile: checked pair by pair against a
 /// world-space ray–plane evaluation in f64 (not the conic algebra of the cull), on scenes with

@@ -134,7 +134,14 @@ pub fn orient_surfels(
     let settings = RasterSettings {
         window,
         two_sided: true,
-        outputs: Outputs { colour: false, depth: true, median_depth: false, normal: false, distortion: false },
+        outputs: Outputs {
+            colour: false,
+            depth: true,
+            median_depth: false,
+            normal: false,
+            distortion: false,
+            surface_depth: false,
+        },
         ..RasterSettings::default()
     };
     for cam in cameras {

@@ -253,6 +253,7 @@ fn iterate(
             median_depth: false,
             normal: use_normal,
             distortion: use_dist,
+            surface_depth: false,
         },
         ..RasterSettings::default()
     };

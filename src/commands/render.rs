@@ -3,8 +3,9 @@
 //! PNG: 8-bit RGBA with straight alpha (colour = Σ w c / α, the SH colour as stored, no tone
 //! mapping). EXR: 32-bit float RGBA, premultiplied (Σ w c, α), the EXR convention. `--aux`
 //! adds float EXRs per view: `<name>_depth.exr` (expected camera depth Σ w z / α),
-//! `<name>_median_depth.exr`, `<name>_normal.exr` (world normal Σ w n, premultiplied) and
-//! `<name>_distortion.exr`.
+//! `<name>_median_depth.exr`, `<name>_surface_depth.exr` (GauS-SLAM's surface-aware depth:
+//! hits behind the median pulled toward it, no hidden-surface bleed), `<name>_normal.exr`
+//! (world normal Σ w n, premultiplied) and `<name>_distortion.exr`.
 
 use crate::io::image::{Image, write_image};
 use crate::raster::{self, Outputs, RasterSettings};
@@ -78,7 +79,8 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = ImageFormat::Png)]
     #[serde(default)]
     pub format: ImageFormat,
-    /// Also write float EXRs of expected depth, median depth, world normal and distortion.
+    /// Also write float EXRs of expected depth, median depth, surface-aware depth, world normal
+    /// and distortion.
     #[arg(long)]
     #[serde(default)]
     pub aux: bool,

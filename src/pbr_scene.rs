@@ -129,14 +129,7 @@ impl PbrScene {
             window: self.window,
             two_sided: false,
             background: bg,
-            outputs: Outputs {
-                colour: true,
-                depth: false,
-                median_depth: false,
-                normal: true,
-                distortion: false,
-                surface_depth: false,
-            },
+            outputs: Outputs { colour: true, normal: true, ..Outputs::none() },
             ..RasterSettings::default()
         };
         let (out, _) = raster::render(&self.surfels, cam, &settings, Some(Features { data: features, channels: ch }));

@@ -392,14 +392,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         window: cfg.window,
         two_sided: cfg.two_sided,
         background: bg,
-        outputs: Outputs {
-            colour: true,
-            depth: false,
-            median_depth: false,
-            normal: true,
-            distortion: false,
-            surface_depth: false,
-        },
+        outputs: Outputs { colour: true, normal: true, ..Outputs::none() },
         ..RasterSettings::default()
     };
     let bar = indicatif::ProgressBar::new(views.len() as u64);

@@ -453,14 +453,7 @@ fn iterate(
         window: cfg.window,
         two_sided: false,
         background: bg,
-        outputs: Outputs {
-            colour: true,
-            depth: true,
-            median_depth: false,
-            normal: true,
-            distortion: false,
-            surface_depth: false,
-        },
+        outputs: Outputs { colour: true, depth: true, normal: true, ..Outputs::none() },
         ..RasterSettings::default()
     };
     let features = Features { data: &sc.shading.features, channels: ch };

@@ -134,14 +134,7 @@ pub fn orient_surfels(
     let settings = RasterSettings {
         window,
         two_sided: true,
-        outputs: Outputs {
-            colour: false,
-            depth: true,
-            median_depth: false,
-            normal: false,
-            distortion: false,
-            surface_depth: false,
-        },
+        outputs: Outputs { depth: true, ..Outputs::none() },
         ..RasterSettings::default()
     };
     for cam in cameras {

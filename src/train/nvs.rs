@@ -250,10 +250,9 @@ fn iterate(
         outputs: Outputs {
             colour: true,
             depth: use_normal,
-            median_depth: false,
             normal: use_normal,
             distortion: use_dist,
-            surface_depth: false,
+            ..Outputs::none()
         },
         ..RasterSettings::default()
     };

@@ -11,7 +11,7 @@ pub enum BenchCommand {
     /// Rasteriser forward / backward throughput, memory and sorting error.
     Raster(raster::RasterBenchArgs),
     /// Ray tracer build, refit and rays per second.
-    Trace,
+    Trace(trace::TraceBenchArgs),
     /// Training iterations per second and the time split.
     Train(train::TrainBenchArgs),
     /// Relit rendering: rasterised frames per second, ray-traced PBR frame time.
@@ -21,7 +21,7 @@ pub enum BenchCommand {
 pub fn run(command: &BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Raster(args) => raster::run(args),
-        BenchCommand::Trace => trace::run(),
+        BenchCommand::Trace(args) => trace::run(args),
         BenchCommand::Train(args) => train::run(args),
         BenchCommand::Relight(args) => relight::run(args),
     }

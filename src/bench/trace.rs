@@ -9,6 +9,8 @@
 //! - `volume`: 100k surfels uniform in [−1, 1]³, random orientations, kNN scales as above,
 //!   opacity uniform [0.05, 1.0] — a harder, unstructured case.
 //!
+//! - `--ply FILE`: a trained scene (a run's point_cloud.ply) instead, reported as `ply`.
+//!
 //! Rays: 2048 random surfels × 64 directions uniform on the hemisphere of the surfel's normal,
 //! starting at the surfel's centre (RadioGS's radiometric-consistency batch), 131072 rays.
 
@@ -17,7 +19,31 @@ use crate::trace::{Ray, RayGrad, RayOutput, TraceSettings, Tracer, trace, trace_
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
+use std::path::PathBuf;
 use std::time::Instant;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct TraceBenchArgs {
+    /// Which built-in scenes to measure.
+    #[arg(long, value_enum, default_value = "both")]
+    pub scene: SceneChoice,
+    /// Measure a trained scene (e.g. a run's point_cloud.ply) instead of the built-in ones.
+    #[arg(long, conflicts_with = "scene")]
+    pub ply: Option<PathBuf>,
+    /// Timed repetitions of the forward (the backward and build take fewer); the median counts.
+    #[arg(long, default_value_t = 5)]
+    pub repeats: usize,
+    /// Hits gathered per traversal (TraceSettings::chunk).
+    #[arg(long, default_value_t = TraceSettings::default().chunk)]
+    pub chunk: usize,
+}
+
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq)]
+pub enum SceneChoice {
+    Surface,
+    Volume,
+    Both,
+}
 
 const N: usize = 100_000;
 
@@ -143,14 +169,23 @@ fn time<F: FnMut()>(reps: usize, mut f: F) -> (f64, f64) {
     (wall, (cpu_seconds() - c0) / reps as f64)
 }
 
-pub fn run() -> anyhow::Result<()> {
-    let settings = TraceSettings::default();
+pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
+    anyhow::ensure!((1..=crate::trace::MAX_CHUNK).contains(&args.chunk), "bench trace: --chunk must be 1..=64");
+    let settings = TraceSettings { chunk: args.chunk, ..TraceSettings::default() };
+    let scenes: Vec<(&str, Surfels)> = match (&args.ply, args.scene) {
+        (Some(path), _) => vec![("ply", crate::io::ply::read_ply(path)?)],
+        (None, SceneChoice::Surface) => vec![("surface", scene("surface", 7))],
+        (None, SceneChoice::Volume) => vec![("volume", scene("volume", 7))],
+        (None, SceneChoice::Both) => vec![("surface", scene("surface", 7)), ("volume", scene("volume", 7))],
+    };
+    anyhow::ensure!(scenes.iter().all(|(_, s)| !s.is_empty()), "bench trace: the scene has no surfels");
+    let reps = args.repeats.max(1);
     println!(
-        "radiogs bench trace: {} threads, {N} surfels, 2048 × 64 hemisphere rays from surfel centres",
-        rayon::current_num_threads()
+        "radiogs bench trace: {} threads, {} surfels, 2048 × 64 hemisphere rays from surfel centres",
+        rayon::current_num_threads(),
+        scenes[0].1.len()
     );
-    for kind in ["surface", "volume"] {
-        let s = scene(kind, 7);
+    for (kind, s) in scenes {
         let rays = hemisphere_rays(&s, 8);
         let nr = rays.len() as f64;
         let build = time(5, || {
@@ -168,14 +203,14 @@ pub fn run() -> anyhow::Result<()> {
         let refit = time(10, || tracer.refit(&moved));
         tracer.refit(&s);
         let mut out = vec![RayOutput::default(); rays.len()];
-        let fwd = time(5, || trace(&tracer, &s, &rays, None, &mut out, None));
+        let fwd = time(reps, || trace(&tracer, &s, &rays, None, &mut out, None));
         let mean_alpha = out.iter().map(|o| 1.0 - o.transmittance as f64).sum::<f64>() / nr;
         let done = out.iter().filter(|o| o.transmittance < settings.min_transmittance).count() as f64 / nr;
         let grads =
             vec![RayGrad { v_radiance: [1.0; 3], v_transmittance: 1.0, v_depth: 0.1, v_normal: [0.1; 3] }; rays.len()];
         let mut v = s.zeros_like();
-        let bwd = time(3, || trace_backward(&tracer, &s, &rays, None, &grads, None, &mut v, None, None));
-        let closest = time(5, || {
+        let bwd = time(reps.div_ceil(2), || trace_backward(&tracer, &s, &rays, None, &grads, None, &mut v, None, None));
+        let closest = time(reps, || {
             let hits: usize =
                 rays.par_iter().with_min_len(32).filter(|r| tracer.closest_hit(r.origin, r.dir).is_some()).count();
             std::hint::black_box(hits);

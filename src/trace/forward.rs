@@ -116,7 +116,7 @@ fn trace_one(
     let linear = tracer.settings.linear_radiance;
     let t_final = march(tracer, &r, |h, trans| {
         let w = trans * h.alpha;
-        let p = &tracer.prims[h.slot as usize];
+
         let i = h.index as usize;
         match feat.as_mut() {
             Some((data, ch, of)) => {
@@ -134,7 +134,7 @@ fn trace_one(
             }
         }
         o.depth += w * h.t;
-        let n = p.normal;
+        let n = tracer.slot_normal(h.slot);
         let s = if two_sided && n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0 { -w } else { w };
         for a in 0..3 {
             o.normal[a] += s * n[a];

@@ -223,6 +223,141 @@ fn bounds_are_tight_and_contain_the_disk() {
     assert!(tracer.node_count() >= 1);
 }
 
+/// Surfels on the surfaces of three spheres with outward normals (a trained object's layout:
+/// neighbouring surfels face the same way, so node normal cones are narrow and cull).
+fn shell_scene(n: usize, seed: u64) -> Surfels {
+    let mut rng = Pcg64::seed_from_u64(seed);
+    let spheres = [([-0.5f32, 0.0, 0.0], 0.45f32), ([0.5, 0.1, 0.0], 0.4), ([0.0, 0.2, 0.7], 0.3)];
+    let mut s = Surfels::default();
+    for k in 0..n {
+        let (c, r) = spheres[k % spheres.len()];
+        let nrm = loop {
+            let v: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0f32));
+            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            if l > 0.1 && l <= 1.0 {
+                break v.map(|x| x / l);
+            }
+        };
+        let mean = std::array::from_fn(|a| c[a] + r * nrm[a]);
+        let scales = [rng.random_range(0.03..0.08f32), rng.random_range(0.03..0.08f32)];
+        let op = rng.random_range(0.1..1.0f32);
+        s.push(mean, scales, quat_with_normal(nrm), op, [rng.random(), rng.random(), rng.random()], [0.3; 3], 0.5);
+    }
+    s.sh_degree = 0;
+    s
+}
+
+/// Rays from surfel centres into the hemisphere of their normal (the consistency and cache
+/// rays), and from outside the shells.
+fn leaving_rays(s: &Surfels, n: usize, seed: u64) -> Vec<Ray> {
+    let mut rng = Pcg64::seed_from_u64(seed);
+    (0..n)
+        .map(|k| {
+            let d = loop {
+                let v: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0f32));
+                let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                if l > 0.1 && l <= 1.0 {
+                    break v.map(|x| x / l);
+                }
+            };
+            if k % 4 == 3 {
+                // From outside, aimed at the middle.
+                let o = d.map(|x| 2.5 * x);
+                let aim: [f32; 3] = std::array::from_fn(|a| rng.random_range(-0.3..0.3f32) - o[a]);
+                let l = (aim[0] * aim[0] + aim[1] * aim[1] + aim[2] * aim[2]).sqrt();
+                return Ray { origin: o, dir: aim.map(|x| x / l) };
+            }
+            let i = rng.random_range(0..s.len());
+            let nrm = s.normal(i);
+            let flip = if d[0] * nrm[0] + d[1] * nrm[1] + d[2] * nrm[2] < 0.0 { -1.0 } else { 1.0 };
+            Ray { origin: s.means[i], dir: d.map(|x| flip * x) }
+        })
+        .collect()
+}
+
+#[test]
+fn normal_cones_bound_the_normals_below_them() {
+    let s = shell_scene(900, 31);
+    let tracer = Tracer::build(&s, &TraceSettings::default());
+    let (mut narrow, mut interior) = (0, 0);
+    for w in &tracer.wide {
+        for j in 0..8 {
+            if w.child[j] == u32::MAX {
+                continue;
+            }
+            interior += 1;
+            let threshold = w.cone[3][j];
+            if threshold.is_finite() {
+                narrow += 1;
+                assert!(threshold > 0.0 && threshold < 1.0, "cull threshold {threshold}");
+            }
+        }
+    }
+    // Check the cone of every BVH2 node against its own surfels (via the leaf blocks).
+    fn subtree_normals(t: &Tracer, k: usize, out: &mut Vec<[f32; 3]>) {
+        let nd = t.nodes[k];
+        if nd.count > 0 {
+            let b = nd.right_or_first as usize;
+            for lane in 0..8 {
+                let i = t.order[b * 8 + lane];
+                if i != u32::MAX && t.blocks[b].rho_max[lane] >= 0.0 {
+                    out.push(t.slot_normal((b * 8 + lane) as u32));
+                }
+            }
+        } else {
+            subtree_normals(t, k + 1, out);
+            subtree_normals(t, nd.right_or_first as usize, out);
+        }
+    }
+    let cones = super::bvh::normal_cones_for_test(&tracer);
+    for (k, cone) in cones.iter().enumerate() {
+        let mut normals = Vec::new();
+        subtree_normals(&tracer, k, &mut normals);
+        if normals.is_empty() {
+            assert!(cone.angle < 0.0);
+            continue;
+        }
+        for n in normals {
+            let c = (cone.axis[0] * n[0] + cone.axis[1] * n[1] + cone.axis[2] * n[2]) as f64;
+            let angle = c.clamp(-1.0, 1.0).acos();
+            assert!(angle <= cone.angle as f64, "node {k}: normal at {angle} outside the cone {}", cone.angle);
+        }
+    }
+    assert!(narrow * 2 > interior, "too few cones narrow enough to cull: {narrow}/{interior}");
+}
+
+#[test]
+fn rays_leaving_surfaces_match_brute_force() {
+    // Rays leaving a shell are where the normal cones cull most; one-sided, two-sided (no
+    // cone culling) and small chunks.
+    let s = shell_scene(900, 41);
+    let rays = leaving_rays(&s, 800, 42);
+    compare_with_reference(&s, &rays, &TraceSettings::default(), None);
+    compare_with_reference(&s, &rays, &TraceSettings { two_sided: true, ..Default::default() }, None);
+    compare_with_reference(&s, &rays, &TraceSettings { chunk: 2, min_transmittance: 1e-4, ..Default::default() }, None);
+}
+
+#[test]
+fn refit_after_flipping_surfels_matches_brute_force() {
+    // Turn a third of the shell surfels inside out (normal −n, a 180° turn about t_u): the
+    // refit must refresh the normal cones, or the culled subtrees would hide those surfels.
+    let mut s = shell_scene(900, 51);
+    let settings = TraceSettings::default();
+    let mut tracer = Tracer::build(&s, &settings);
+    for i in (0..s.len()).step_by(3) {
+        let n = s.normal(i);
+        s.quats[i] = quat_with_normal(n.map(|x| -x));
+    }
+    tracer.refit(&s);
+    let rays = leaving_rays(&s, 800, 52);
+    let mut a = vec![RayOutput::default(); rays.len()];
+    let mut b = vec![RayOutput::default(); rays.len()];
+    trace(&tracer, &s, &rays, None, &mut a, None);
+    trace(&Tracer::build(&s, &settings), &s, &rays, None, &mut b, None);
+    assert_eq!(a, b);
+    compare_with_reference(&s, &rays, &settings, None);
+}
+
 #[test]
 fn refit_matches_a_fresh_build() {
     let mut s = random_scene(500, 21, 3);

@@ -11,7 +11,8 @@
 //! quaternion, o = sigmoid(θ); c = max(SH(d̂) + 0.5, 0) (clamped channels pass no gradient); the
 //! SH direction gradient is summed per ray and pushed through d̂ = d/|d| once.
 //!
-//! Parallel decomposition: rayon over fixed blocks of rays; each block borrows a dense gradient
+//! Parallel decomposition: rayon over fixed blocks of rays (in the forward's coherent order,
+//! a function of the rays alone); each block borrows a dense gradient
 //! buffer from a pool (about one per thread), remembers which surfels it touched and returns
 //! their records as a sparse list (clearing the buffer). The lists are added into `v_surfels` in
 //! block order, so the gradients are bitwise deterministic whatever the thread count or
@@ -21,7 +22,7 @@ use crate::sh::{self, SH_COEFFS};
 use crate::shade::incident::{decode, decode_derivative};
 use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat, rotation_from_quat_backward, sigmoid};
 use crate::trace::bvh::{Hit, PreparedRay, Tracer};
-use crate::trace::forward::{march, sh_colour, unit};
+use crate::trace::forward::{coherent_order, march, sh_colour, unit};
 use crate::trace::{ALPHA_MAX, Features, Ray, RayGrad};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -117,10 +118,11 @@ pub fn trace_backward(
     // One block of rays: accumulate into a pooled dense buffer, then hand back the touched
     // records as a sparse list (first-touch order) and clear the buffer. Which buffer a block
     // borrows does not matter (it is all zeros), so the sparse lists depend only on the rays.
-    let process = |start: usize, rs: &[Ray], mut vr: Option<&mut [Ray]>| -> Sparse {
+    let process = |ids: &[u32], mut vr: Option<&mut [Ray]>| -> Sparse {
         let mut buf = pool.lock().unwrap().pop().unwrap_or_else(|| GradBuf::new(n, stride));
-        for (k, ray) in rs.iter().enumerate() {
-            let g = ctx.ray_backward(start + k, ray, &grads[start + k], &mut buf);
+        for (k, &r) in ids.iter().enumerate() {
+            let r = r as usize;
+            let g = ctx.ray_backward(r, &rays[r], &grads[r], &mut buf);
             if let Some(vr) = vr.as_deref_mut() {
                 vr[k] = g;
             }
@@ -168,27 +170,29 @@ pub fn trace_backward(
             }
         }
     };
+    // Blocks follow the same coherent ray order as the forward pass (a fixed function of the
+    // rays, so the reduction stays deterministic).
+    let order = coherent_order(rays);
     let wave = RAYS_PER_BLOCK * BLOCKS_PER_WAVE;
     match v_rays {
         Some(vr) => {
             assert_eq!(vr.len(), rays.len(), "trace_backward: v_rays has {} entries for {} rays", vr.len(), rays.len());
-            for (w, (rw, vw)) in rays.chunks(wave).zip(vr.chunks_mut(wave)).enumerate() {
-                let lists: Vec<Sparse> = rw
+            let mut sorted = vec![Ray::default(); rays.len()];
+            for (ow, vw) in order.chunks(wave).zip(sorted.chunks_mut(wave)) {
+                let lists: Vec<Sparse> = ow
                     .par_chunks(RAYS_PER_BLOCK)
                     .zip(vw.par_chunks_mut(RAYS_PER_BLOCK))
-                    .enumerate()
-                    .map(|(c, (rs, vr))| process(w * wave + c * RAYS_PER_BLOCK, rs, Some(vr)))
+                    .map(|(ids, vr)| process(ids, Some(vr)))
                     .collect();
                 lists.iter().for_each(&mut merge);
             }
+            for (&k, g) in order.iter().zip(sorted) {
+                vr[k as usize] = g;
+            }
         }
         None => {
-            for (w, rw) in rays.chunks(wave).enumerate() {
-                let lists: Vec<Sparse> = rw
-                    .par_chunks(RAYS_PER_BLOCK)
-                    .enumerate()
-                    .map(|(c, rs)| process(w * wave + c * RAYS_PER_BLOCK, rs, None))
-                    .collect();
+            for ow in order.chunks(wave) {
+                let lists: Vec<Sparse> = ow.par_chunks(RAYS_PER_BLOCK).map(|ids| process(ids, None)).collect();
                 lists.iter().for_each(&mut merge);
             }
         }

@@ -5,8 +5,10 @@
 //! Σ w_j t_j, normal Σ w_j n_j and feature channels Σ w_j f_j. c_j = max(SH_j(d̂) + 0.5, 0) at the
 //! ray's unit direction d̂ (the basis is evaluated once per ray).
 //!
-//! Parallel decomposition: rayon over rays (each ray independent, no shared writes). Nothing is
-//! saved for the backward pass: it re-casts the rays.
+//! Parallel decomposition: rayon over rays (each ray independent, no shared writes), taken in a
+//! coherent order (`coherent_order`: Morton code of origin, then direction) so consecutive
+//! rays reuse the nodes and leaves in cache; outputs are put back in the callers' order.
+//! Nothing is saved for the backward pass: it re-casts the rays.
 
 use crate::camera::Camera;
 use crate::sh::{self, SH_COEFFS};
@@ -79,27 +81,90 @@ pub fn trace(
         surfels.len()
     );
     let ncoef = sh::coeff_count(surfels.sh_degree);
-    match (features, out_features) {
+    // Rays are traced in a coherent order (neighbouring origins and directions one after
+    // another share the nodes and leaves they load) and the outputs put back in place.
+    let order = coherent_order(rays);
+    let ch = match (&features, &out_features) {
         (Some(f), Some(of)) => {
-            let ch = f.channels;
-            assert_eq!(f.data.len(), surfels.len() * ch, "trace: features are not surfels × channels");
-            assert_eq!(of.len(), rays.len() * ch, "trace: out_features is not rays × channels");
-            if ch == 0 {
-                return trace(tracer, surfels, rays, None, out, None);
-            }
-            rays.par_iter().zip(out.par_iter_mut()).zip(of.par_chunks_mut(ch)).with_min_len(32).for_each(
-                |((ray, o), of)| {
-                    of.fill(0.0);
-                    *o = trace_one(tracer, surfels, ray, ncoef, Some((f.data, ch, of)));
-                },
-            );
+            assert_eq!(f.data.len(), surfels.len() * f.channels, "trace: features are not surfels × channels");
+            assert_eq!(of.len(), rays.len() * f.channels, "trace: out_features is not rays × channels");
+            f.channels
         }
-        _ => {
-            rays.par_iter().zip(out.par_iter_mut()).with_min_len(32).for_each(|(ray, o)| {
-                *o = trace_one(tracer, surfels, ray, ncoef, None);
-            });
+        _ => 0,
+    };
+    let n = rays.len();
+    let mut sorted = vec![RayOutput::default(); n];
+    let mut sorted_features = vec![0.0f32; n * ch];
+    match features.filter(|_| ch > 0) {
+        Some(f) => sorted
+            .par_iter_mut()
+            .zip(sorted_features.par_chunks_mut(ch))
+            .zip(order.par_iter())
+            .with_min_len(32)
+            .for_each(|((o, of), &k)| {
+                *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, Some((f.data, ch, of)))
+            }),
+        None => sorted.par_iter_mut().zip(order.par_iter()).with_min_len(32).for_each(|(o, &k)| {
+            *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, None);
+        }),
+    }
+    let mut out_features = out_features;
+    for (j, &k) in order.iter().enumerate() {
+        let k = k as usize;
+        out[k] = sorted[j];
+        if let Some(of) = out_features.as_deref_mut().filter(|_| ch > 0) {
+            of[k * ch..(k + 1) * ch].copy_from_slice(&sorted_features[j * ch..(j + 1) * ch]);
         }
     }
+}
+
+/// A tracing order in which consecutive rays are close in origin and direction: rays sorted by
+/// a Morton code of the origin (10 bits per axis over the rays' bounds), then of the direction
+/// (octahedral map, 5 bits per axis), ties by index (deterministic). Below 64 rays: as given.
+pub(crate) fn coherent_order(rays: &[Ray]) -> Vec<u32> {
+    if rays.len() < 64 {
+        return (0..rays.len() as u32).collect();
+    }
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for r in rays {
+        for a in 0..3 {
+            if r.origin[a].is_finite() {
+                lo[a] = lo[a].min(r.origin[a]);
+                hi[a] = hi[a].max(r.origin[a]);
+            }
+        }
+    }
+    // `as u32` saturates (NaN → 0), so odd rays only land in odd places.
+    let quantise = |x: f32, lo: f32, hi: f32, levels: f32| {
+        if hi > lo { ((x - lo) / (hi - lo) * levels) as u32 } else { 0 }
+    };
+    let interleave = |q: &[u32], bits: u32| {
+        let mut k = 0u64;
+        for b in (0..bits).rev() {
+            for &x in q {
+                k = (k << 1) | ((x >> b) & 1) as u64;
+            }
+        }
+        k
+    };
+    let mut keyed: Vec<(u64, u32)> = rays
+        .par_iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let o: [u32; 3] = std::array::from_fn(|a| quantise(r.origin[a], lo[a], hi[a], 1023.0));
+            let (d, _) = unit(r.dir);
+            // Octahedral map of the direction onto [−1, 1]².
+            let l1 = d[0].abs() + d[1].abs() + d[2].abs();
+            let (mut u, mut v) = if l1 > 0.0 { (d[0] / l1, d[1] / l1) } else { (0.0, 0.0) };
+            if d[2] < 0.0 {
+                (u, v) = ((1.0 - v.abs()) * u.signum(), (1.0 - u.abs()) * v.signum());
+            }
+            let dq = [quantise(u, -1.0, 1.0, 31.0), quantise(v, -1.0, 1.0, 31.0)];
+            ((interleave(&o, 10) << 10) | interleave(&dq, 5), i as u32)
+        })
+        .collect();
+    keyed.par_sort_unstable();
+    keyed.into_iter().map(|(_, i)| i).collect()
 }
 
 fn trace_one(

@@ -36,6 +36,9 @@ pub const MAX_CHUNK: usize = 64;
 #[derive(Clone, Debug, PartialEq)]
 pub struct TraceSettings {
     /// Hits gathered per traversal (k nearest beyond the last composited depth), 1..=64.
+    /// Results do not depend on it (hits are composited in exact order either way); 32 rather
+    /// than RadioGS's 16 because each further chunk re-traverses the tree from the root, and rays
+    /// through trained scenes pass ~23 candidate hits (measured: forward 1.15–1.3× faster).
     pub chunk: usize,
     /// Stop after the transmittance drops below this (RadioGS: 0.03).
     pub min_transmittance: f32,
@@ -57,7 +60,7 @@ pub struct TraceSettings {
 impl Default for TraceSettings {
     fn default() -> Self {
         TraceSettings {
-            chunk: 16,
+            chunk: 32,
             min_transmittance: 0.03,
             two_sided: false,
             t_min: 1e-4,

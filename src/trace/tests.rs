@@ -719,3 +719,42 @@ fn backward_is_deterministic_across_thread_counts() {
         assert!(r == r1, "ray gradients differ with {threads} threads");
     }
 }
+
+#[test]
+fn coherent_order_leaves_results_in_the_callers_places() {
+    // Batches of ≥ 64 rays are traced in a sorted order; each ray's outputs, feature channels
+    // and ray gradients must land at its own index: compare with tracing each ray alone.
+    let s = random_scene(300, 61, 2);
+    let tracer = Tracer::build(&s, &TraceSettings::default());
+    let rays = random_rays(500, 62, &s);
+    let order = super::forward::coherent_order(&rays);
+    assert!(order.iter().enumerate().any(|(j, &k)| j != k as usize), "the order is the identity");
+    let mut sorted = order.clone();
+    sorted.sort_unstable();
+    assert!(sorted.iter().enumerate().all(|(j, &k)| j == k as usize), "not a permutation");
+
+    let ch = 2;
+    let feats: Vec<f32> = (0..s.len() * ch).map(|i| (i % 11) as f32 * 0.1).collect();
+    let f = || Some(Features { data: &feats, channels: ch });
+    let mut out = vec![RayOutput::default(); rays.len()];
+    let mut of = vec![0.0f32; rays.len() * ch];
+    trace(&tracer, &s, &rays, f(), &mut out, Some(&mut of));
+    let g: Vec<RayGrad> = (0..rays.len())
+        .map(|k| RayGrad { v_transmittance: 1.0 + k as f32 * 0.01, v_depth: 0.1, ..Default::default() })
+        .collect();
+    let mut v = s.zeros_like();
+    let mut vr = vec![Ray::default(); rays.len()];
+    trace_backward(&tracer, &s, &rays, None, &g, None, &mut v, None, Some(&mut vr));
+    for k in 0..rays.len() {
+        let mut o1 = [RayOutput::default()];
+        let mut of1 = vec![0.0f32; ch];
+        trace(&tracer, &s, &rays[k..k + 1], f(), &mut o1, Some(&mut of1));
+        assert_eq!(out[k], o1[0], "ray {k}");
+        assert_eq!(&of[k * ch..(k + 1) * ch], &of1[..], "ray {k} features");
+        let mut v1 = s.zeros_like();
+        let mut vr1 = [Ray::default()];
+        trace_backward(&tracer, &s, &rays[k..k + 1], None, &g[k..k + 1], None, &mut v1, None, Some(&mut vr1));
+        assert_eq!(vr[k], vr1[0], "ray {k} gradient");
+    }
+    assert!(out.iter().filter(|o| o.transmittance < 1.0).count() > 100);
+}

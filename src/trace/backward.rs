@@ -113,7 +113,8 @@ pub fn trace_backward(
         assert_eq!(vsf.len(), n * channels, "trace_backward: v_surfel_features is not surfels × channels");
     }
     let pool: Mutex<Vec<GradBuf>> = Mutex::new(Vec::new());
-    let ctx = Ctx { tracer, surfels, ncoef, channels, fdata, vfo, o_feat, stride, use_features };
+    let want_rays = v_rays.is_some();
+    let ctx = Ctx { tracer, surfels, ncoef, channels, fdata, vfo, o_feat, stride, use_features, want_rays };
 
     // One block of rays: accumulate into a pooled dense buffer, then hand back the touched
     // records as a sparse list (first-touch order) and clear the buffer. Which buffer a block
@@ -215,6 +216,8 @@ struct Ctx<'a> {
     o_feat: usize,
     stride: usize,
     use_features: bool,
+    /// ∂L/∂(origin, dir) wanted: otherwise the SH direction terms are skipped.
+    want_rays: bool,
 }
 
 #[inline(always)]
@@ -305,7 +308,11 @@ impl Ctx<'_> {
                     for c in 0..3 {
                         rec[O_SH + 3 * k + c] += v_c[c] * basis[k];
                     }
-                    v_basis[k] += coeffs[k][0] * v_c[0] + coeffs[k][1] * v_c[1] + coeffs[k][2] * v_c[2];
+                }
+                if self.want_rays {
+                    for k in 0..self.ncoef {
+                        v_basis[k] += coeffs[k][0] * v_c[0] + coeffs[k][1] * v_c[1] + coeffs[k][2] * v_c[2];
+                    }
                 }
             }
 
@@ -341,7 +348,7 @@ impl Ctx<'_> {
             rec[O_OPACITY] += v_op * op * (1.0 - op);
         }
         // SH colours depend on d̂ = d/|d|: ∂/∂d = (I − d̂ d̂ᵀ) ∂/∂d̂ / |d|.
-        if self.ncoef > 1 {
+        if self.ncoef > 1 && self.want_rays {
             let jac = sh::basis_jacobian(dh);
             let mut v_dh = [0.0f32; 3];
             for k in 1..self.ncoef {

@@ -674,6 +674,9 @@ impl Tracer {
         let lo = after.0.max(self.settings.t_min);
         let mut n = 0usize;
         let mut cull = self.settings.t_max;
+        // Π (1 − α) over the gathered hits, kept up to date so the exact early-termination scan
+        // runs only once the set can reach the cut-off.
+        let mut kept = 1.0f32;
         let o = [f32x8::splat(r.o[0]), f32x8::splat(r.o[1]), f32x8::splat(r.o[2])];
         let inv = [f32x8::splat(r.inv_d[0]), f32x8::splat(r.inv_d[1]), f32x8::splat(r.inv_d[2])];
         let lo_v = f32x8::splat(lo);
@@ -691,7 +694,7 @@ impl Tracer {
             }
             if node & LEAF_BIT != 0 {
                 let block = (node & !LEAF_BIT) as usize;
-                self.leaf_hits(block, r, after, k, (trans0, stop_below), out, &mut n, &mut cull);
+                self.leaf_hits(block, r, after, k, (trans0, stop_below), out, (&mut n, &mut kept), &mut cull);
                 continue;
             }
             let nd = &self.wide[node as usize];
@@ -751,7 +754,7 @@ impl Tracer {
         k: usize,
         (trans0, stop_below): (f32, f32),
         out: &mut [Hit; MAX_CHUNK],
-        n: &mut usize,
+        (n, kept): (&mut usize, &mut f32),
         cull: &mut f32,
     ) {
         let (t_min, t_max) = (self.settings.t_min, self.settings.t_max);
@@ -796,6 +799,10 @@ impl Tracer {
                 continue;
             }
             // Insertion into the sorted array (drops the k-th when full).
+            if *n == k {
+                *kept /= 1.0 - out[k - 1].alpha;
+            }
+            *kept *= 1.0 - alpha;
             let mut j = if *n == k { k - 1 } else { *n };
             while j > 0 && key_less(t, index, out[j - 1].t, out[j - 1].index) {
                 out[j] = out[j - 1];
@@ -809,8 +816,11 @@ impl Tracer {
                 *cull = cull.min(out[k - 1].t);
             }
             // Early termination: the hit where the (caller-order) product drops below the
-            // cut-off is the last one composited; farther nodes need no visit.
-            if stop_below > 0.0 {
+            // cut-off is the last one composited; farther nodes need no visit. Every prefix
+            // product is ≥ the whole set's, so while that stays clear of the cut-off (with
+            // room for its rounding drift) no hit can be the one. Only a cull: skipping it
+            // never changes which hits are composited.
+            if stop_below > 0.0 && trans0 * *kept < stop_below * 1.01 {
                 let mut tr = trans0;
                 for h in &out[..*n] {
                     tr *= 1.0 - h.alpha;

@@ -298,9 +298,8 @@ pub struct Tracer {
     /// behind each child slot (u32::MAX for an empty slot) so a refit can copy the boxes.
     pub(crate) wide: Vec<WideNode>,
     pub(crate) wide_src: Vec<[u32; W]>,
-    /// Surfel index of each slot (block × 8 + lane; u32::MAX for an unused lane).
-    pub(crate) order: Vec<u32>,
-    /// One block per leaf, in leaf order (a leaf node's `right_or_first` is its block).
+    /// One block per leaf, in leaf order (a leaf node's `right_or_first` is its block); a lane's
+    /// `index` names its surfel (u32::MAX for an unused lane), which a refit reloads.
     pub(crate) blocks: Vec<PrimBlock>,
     /// Surfel count at the build.
     pub(crate) count: usize,
@@ -500,7 +499,6 @@ impl Tracer {
         let mut nodes = if n == 0 { Vec::new() } else { build_subtree(&mut idx, &boxes, &surfels.means, 0, 0) };
         assert!(n < (1 << 28), "trace: {n} surfels exceed the BVH's 2^28 primitive limit");
         // Each leaf's primitives go into one block; the leaf then names its block.
-        let mut order = Vec::new();
         let mut blocks = Vec::new();
         for nd in nodes.iter_mut().filter(|nd| nd.count > 0) {
             let first = nd.right_or_first as usize;
@@ -508,22 +506,12 @@ impl Tracer {
             for (lane, &i) in idx[first..first + nd.count as usize].iter().enumerate() {
                 block.set(lane, &prims[i as usize]);
             }
-            order.extend((0..W).map(|lane| block.index[lane]));
             nd.right_or_first = blocks.len() as u32;
             blocks.push(block);
         }
         let (wide, wide_src) = collapse(&nodes, &normal_cones(&nodes, &blocks));
-        let mut t = Tracer {
-            settings: settings.clone(),
-            nodes,
-            wide,
-            wide_src,
-            order,
-            blocks,
-            count: n,
-            built_cost: 0.0,
-            cost: 0.0,
-        };
+        let mut t =
+            Tracer { settings: settings.clone(), nodes, wide, wide_src, blocks, count: n, built_cost: 0.0, cost: 0.0 };
         t.cost = t.sah_cost();
         t.built_cost = t.cost;
         t
@@ -539,15 +527,16 @@ impl Tracer {
         // Blocks and their boxes in parallel, then the leaves, then the interior nodes
         // bottom-up (children follow their parent).
         let mut block_boxes = vec![EMPTY; self.blocks.len()];
-        self.blocks.par_iter_mut().zip(block_boxes.par_iter_mut()).zip(self.order.par_chunks(W)).for_each(
-            |((block, bb), lanes)| {
-                for (lane, &i) in lanes.iter().enumerate().filter(|(_, i)| **i != u32::MAX) {
+        self.blocks.par_iter_mut().zip(block_boxes.par_iter_mut()).for_each(|(block, bb)| {
+            for lane in 0..W {
+                let i = block.index[lane];
+                if i != u32::MAX {
                     let (b, p) = surfel_bounds(surfels, i as usize);
                     block.set(lane, &p);
                     *bb = union(bb, &b);
                 }
-            },
-        );
+            }
+        });
         self.nodes.par_iter_mut().with_min_len(1024).filter(|nd| nd.count > 0).for_each(|nd| {
             let b = block_boxes[nd.right_or_first as usize];
             nd.min = [b[0], b[1], b[2]];

@@ -299,7 +299,7 @@ fn normal_cones_bound_the_normals_below_them() {
         if nd.count > 0 {
             let b = nd.right_or_first as usize;
             for lane in 0..8 {
-                let i = t.order[b * 8 + lane];
+                let i = t.blocks[b].index[lane];
                 if i != u32::MAX && t.blocks[b].rho_max[lane] >= 0.0 {
                     out.push(t.slot_normal((b * 8 + lane) as u32));
                 }

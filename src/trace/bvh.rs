@@ -101,7 +101,7 @@ impl PrimBlock {
         (0..W).filter(|&l| self.index[l] != u32::MAX)
     }
 }
-/// Child reference flag: a leaf, encoded LEAF_BIT | first << 3 | (count − 1).
+/// Child reference flag: a leaf, encoded LEAF_BIT | its block's index.
 const LEAF_BIT: u32 = 1 << 31;
 /// Child reference of an unused slot.
 const EMPTY_CHILD: u32 = u32::MAX;
@@ -219,13 +219,13 @@ fn angle_of(cos: f32) -> f32 {
     (if x >= 0.0 { r } else { std::f32::consts::PI - r }) + 1e-4
 }
 
-/// Normal cone of every BVH2 node: leaves in parallel, then one reverse pass over the interior
-/// nodes (children always follow their parent).
 #[cfg(test)]
 pub(crate) fn normal_cones_for_test(t: &Tracer) -> Vec<NormalCone> {
     normal_cones(&t.nodes, &t.blocks)
 }
 
+/// Normal cone of every BVH2 node: leaves in parallel, then one reverse pass over the interior
+/// nodes (children always follow their parent).
 fn normal_cones(nodes: &[Node], blocks: &[PrimBlock]) -> Vec<NormalCone> {
     let mut cones: Vec<NormalCone> = nodes
         .par_iter()
@@ -836,5 +836,22 @@ impl Tracer {
         let mut out = [Hit::default(); MAX_CHUNK];
         let n = self.gather(&r, (f32::NEG_INFINITY, 0), 1, (1.0, 0.0), &mut out);
         (n == 1).then(|| (out[0].t, out[0].index))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::angle_of;
+
+    #[test]
+    fn angle_of_bounds_acos_from_above_tightly() {
+        for k in 0..=20000 {
+            let c = -1.0 + 2.0 * k as f64 / 20000.0;
+            let exact = c.acos();
+            let bound = angle_of(c as f32) as f64;
+            assert!(bound >= exact, "cos {c}: {bound} < acos {exact}");
+            assert!(bound - exact < 2e-4, "cos {c}: {bound} is loose against {exact}");
+        }
+        assert!(angle_of(1.5) >= 0.0 && angle_of(-1.5) >= std::f64::consts::PI as f32 - 1e-6);
     }
 }

@@ -181,7 +181,6 @@ fn trace_one(
     let linear = tracer.settings.linear_radiance;
     let t_final = march(tracer, &r, |h, trans| {
         let w = trans * h.alpha;
-
         let i = h.index as usize;
         match feat.as_mut() {
             Some((data, ch, of)) => {

@@ -144,6 +144,14 @@ pub struct TrainConfig {
     #[arg(long, default_value_t = 1000)]
     pub sh_up_every: u32,
 
+    // Stage `init` (RadioGS stage 1, DESIGN §1): the nvs losses and schedule plus these.
+    /// Simplified radiometric consistency L1(SH_i, L_pbr,i) of stage 1 [0.1] and its start
+    /// iteration (of 30k; the published 2000 of 40k).
+    #[arg(long, default_value_t = 0.1)]
+    pub lambda_simple_rc: f32,
+    #[arg(long, default_value_t = 1500)]
+    pub simple_rc_from: u32,
+
     // Inverse rendering (RadioGS stage 2, DESIGN §1). Published values in brackets; the CPU
     // defaults are chosen by measuring quality against time (BENCHMARKS.md).
     /// Iterations of the inverse stage (`--iters` sets the nvs stage).
@@ -319,6 +327,7 @@ impl TrainConfig {
         }
         for (key, v) in [
             ("lambda_rc", self.lambda_rc),
+            ("lambda_simple_rc", self.lambda_simple_rc),
             ("lambda_pbr", self.lambda_pbr),
             ("lambda_sh_image", self.lambda_sh_image),
             ("lambda_mask_inverse", self.lambda_mask_inverse),

@@ -18,18 +18,20 @@
 //! No densification. Writes `checkpoint_inverse.bin`, `point_cloud.ply` (with material
 //! fields) and `envmap.exr`.
 
-use super::consistency::{RcLosses, RcScratch, RcSettings, encode, encode_derivative, radiometric_consistency};
+use super::consistency::{RcLosses, RcScratch, RcSettings, radiometric_consistency};
+use super::light::LearnedLight;
 use super::material::{MaterialGrads, MaterialView, orient_surfels, view_dir, view_dir_backward};
 use super::nvs::{
     self, StageSummary, TimeSplit, TrainImages, iteration_rng, open_metrics, progress_bar, view_for_iteration,
 };
+use super::pbr_image::PbrImageLoss;
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::error::Error;
 use crate::io::dataset::{Dataset, Split};
 use crate::io::ply::write_ply;
 use crate::loss::{self, EdgeAwareSmoothness, NormalConsistency, Ssim};
-use crate::optim::{Adam, LearningRates, SurfelAdam};
+use crate::optim::{LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
 use crate::shade::incident::IncidentCache;
 use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
@@ -70,10 +72,7 @@ pub fn trace_settings() -> TraceSettings {
 pub struct InverseState {
     pub surfels: Surfels,
     pub adam: SurfelAdam,
-    /// Log radiance of the env texels, H × 2H × 3.
-    pub env_log: Vec<f32>,
-    pub env_adam: Adam,
-    pub env_height: usize,
+    pub light: LearnedLight,
     pub cache: IncidentCache,
     pub iteration: u32,
     pub extent: f32,
@@ -100,12 +99,7 @@ fn learning_rates(cfg: &TrainConfig) -> LearningRates {
 
 impl InverseState {
     pub fn env(&self) -> EnvMap {
-        let h = self.env_height;
-        EnvMap {
-            width: 2 * h,
-            height: h,
-            texels: self.env_log.chunks_exact(3).map(|c| [c[0].exp(), c[1].exp(), c[2].exp()]).collect(),
-        }
+        self.light.env()
     }
 
     /// Fresh materials and light on the nvs result.
@@ -126,19 +120,10 @@ impl InverseState {
         );
         surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
         surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
-        let h = cfg.env_height;
-        let env_log = match &cfg.env_init_map {
-            Some(path) => {
-                EnvMap::load(path)?.resample(2 * h, h).texels.iter().flat_map(|t| t.map(|v| v.max(1e-4).ln())).collect()
-            }
-            None => vec![cfg.env_init.ln(); h * 2 * h * 3],
-        };
         let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
         adam.lr.means = position_lr(cfg, extent);
         Ok(InverseState {
-            env_adam: Adam::new(env_log.len(), cfg.lr_env),
-            env_log,
-            env_height: h,
+            light: LearnedLight::fresh(cfg)?,
             adam,
             surfels,
             cache: IncidentCache::default(),
@@ -154,8 +139,6 @@ impl InverseState {
                 "iteration": self.iteration,
                 "extent": self.extent,
                 "adam_step": self.adam.step,
-                "env_adam_step": self.env_adam.step,
-                "env_height": self.env_height,
                 "cache_samples": self.cache.samples,
                 "cache_weight": self.cache.weight,
                 "seed": cfg.seed,
@@ -166,9 +149,7 @@ impl InverseState {
         c.put_surfels("params", &self.surfels);
         c.put_surfels("adam_m", &self.adam.m);
         c.put_surfels("adam_v", &self.adam.v);
-        c.put("env.log", self.env_log.clone());
-        c.put("env.adam_m", self.env_adam.m.clone());
-        c.put("env.adam_v", self.env_adam.v.clone());
+        self.light.put(&mut c);
         c.put("cache.dirs", self.cache.dirs.iter().flatten().copied().collect());
         c.put("cache.visibility", self.cache.visibility.clone());
         c.put("cache.indirect", self.cache.indirect.iter().flatten().copied().collect());
@@ -189,15 +170,7 @@ impl InverseState {
         adam.m = c.get_surfels(path, "adam_m")?;
         adam.v = c.get_surfels(path, "adam_v")?;
         adam.step = meta_u64("adam_step")?;
-        let h = meta_u64("env_height")? as usize;
-        let env_log = c.require(path, "env.log")?.to_vec();
-        if env_log.len() != h * 2 * h * 3 {
-            return Err(Error::format(path, "env.log", "size does not match env_height"));
-        }
-        let mut env_adam = Adam::new(env_log.len(), cfg.lr_env);
-        env_adam.m = c.require(path, "env.adam_m")?.to_vec();
-        env_adam.v = c.require(path, "env.adam_v")?.to_vec();
-        env_adam.step = meta_u64("env_adam_step")?;
+        let light = LearnedLight::get(path, c, cfg)?;
         let samples = meta_u64("cache_samples")? as usize;
         let triples = |name: &str| -> crate::Result<Vec<[f32; 3]>> {
             Ok(c.require(path, name)?.chunks_exact(3).map(|x| [x[0], x[1], x[2]]).collect())
@@ -212,16 +185,7 @@ impl InverseState {
         if cache.len() != surfels.len() && !cache.is_empty() {
             return Err(Error::format(path, "cache", "row count differs from the surfel count"));
         }
-        Ok(InverseState {
-            surfels,
-            adam,
-            env_log,
-            env_adam,
-            env_height: h,
-            cache,
-            iteration: meta_u64("iteration")? as u32,
-            extent,
-        })
+        Ok(InverseState { surfels, adam, light, cache, iteration: meta_u64("iteration")? as u32, extent })
     }
 }
 
@@ -387,12 +351,9 @@ pub struct InverseTimes {
 #[derive(Default)]
 struct Scratch {
     gt: Vec<[f32; 3]>,
-    pbr_lin: Vec<[f32; 3]>,
-    pbr_srgb: Vec<[f32; 3]>,
-    v_pbr_srgb: Vec<[f32; 3]>,
+    pbr_image: PbrImageLoss,
     grads: RenderGrads,
     ssim_sh: Ssim,
-    ssim_pbr: Ssim,
     normal: NormalConsistency,
     smooth: EdgeAwareSmoothness,
     map: Vec<f32>,
@@ -492,32 +453,11 @@ fn iterate(
     l.psnr_sh = loss::psnr(&out.colour, &sc.gt);
 
     // PBR image: linear features over the linear background, then sRGB.
-    let bg_lin = bg.map(crate::io::image::srgb_to_linear);
-    sc.pbr_lin.clear();
-    sc.pbr_lin.extend((0..np).map(|p| {
-        let f = &out.features[p * ch..p * ch + 3];
-        [0, 1, 2].map(|k| f[k] + (1.0 - out.alpha[p]) * bg_lin[k])
-    }));
-    sc.pbr_srgb.clear();
-    sc.pbr_srgb.extend(sc.pbr_lin.iter().map(|c| c.map(encode)));
-    l.psnr_pbr = loss::psnr(&sc.pbr_srgb, &sc.gt);
     let wp = cfg.lambda_pbr;
-    if wp > 0.0 {
-        sc.v_pbr_srgb.clear();
-        sc.v_pbr_srgb.resize(np, [0.0; 3]);
-        l.pbr_l1 = loss::l1_rgb(&sc.pbr_srgb, &sc.gt, None, wp, &mut sc.v_pbr_srgb);
-        l.pbr_dssim = sc.ssim_pbr.dssim_loss(&sc.pbr_srgb, &sc.gt, w, h, wp * 0.2, &mut sc.v_pbr_srgb);
-        l.total += wp * (l.pbr_l1 + 0.2 * l.pbr_dssim);
-        for p in 0..np {
-            let mut va = 0.0;
-            for k in 0..3 {
-                let v = sc.v_pbr_srgb[p][k] * encode_derivative(sc.pbr_lin[p][k]);
-                g.v_features[p * ch + k] += v;
-                va -= v * bg_lin[k];
-            }
-            g.v_alpha[p] += va;
-        }
-    }
+    let pbr =
+        sc.pbr_image.evaluate(&out.features, ch, &out.alpha, bg, &sc.gt, (w, h), wp, &mut g.v_features, &mut g.v_alpha);
+    (l.pbr_l1, l.pbr_dssim, l.psnr_pbr) = (pbr.l1, pbr.dssim, pbr.psnr);
+    l.total += wp * (l.pbr_l1 + 0.2 * l.pbr_dssim);
     if cfg.lambda_mask_inverse > 0.0 {
         l.mask = loss::mask_bce(&out.alpha, alpha, cfg.lambda_mask_inverse, &mut g.v_alpha);
         l.total += cfg.lambda_mask_inverse * l.mask;
@@ -646,22 +586,24 @@ fn iterate(
         ss.backward_to_env(grads, &mut sc.v_env);
     }
     // Env priors on the linear texels, then the exp activation.
-    let env = env_full;
-    let hh = state.env_height;
-    if cfg.lambda_white_light > 0.0 {
-        l.env_prior +=
-            cfg.lambda_white_light * loss::white_light_prior(&env.texels, cfg.lambda_white_light, &mut sc.v_env);
-    }
-    if cfg.lambda_env_tv > 0.0 {
-        l.env_prior += cfg.lambda_env_tv * loss::env_tv(&env.texels, 2 * hh, hh, cfg.lambda_env_tv, &mut sc.v_env);
-    }
+    l.env_prior = state.light.priors_and_chain(cfg, env_full, &mut sc.v_env, &mut sc.v_env_log);
     l.total += l.env_prior;
-    sc.v_env_log.clear();
-    sc.v_env_log.extend(sc.v_env.iter().zip(&env.texels).flat_map(|(v, t)| [v[0] * t[0], v[1] * t[1], v[2] * t[2]]));
     l
 }
 
-/// Run (or resume) the inverse stage into `cfg.out`, starting from the run's nvs checkpoint.
+/// The geometry the inverse stage starts from: the newer of the run's `init` and `nvs`
+/// checkpoints.
+pub fn geometry_checkpoint(run: &Path) -> Option<PathBuf> {
+    let modified = |p: &PathBuf| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    [nvs::GeometryStage::Init, nvs::GeometryStage::Nvs]
+        .map(|s| s.checkpoint(run))
+        .into_iter()
+        .filter(|p| p.is_file())
+        .max_by_key(modified)
+}
+
+/// Run (or resume) the inverse stage into `cfg.out`, starting from the run's newest geometry
+/// checkpoint ([`geometry_checkpoint`]).
 pub fn run(cfg: &TrainConfig, dataset: &Dataset, show_progress: bool) -> anyhow::Result<StageSummary> {
     run_until(cfg, dataset, show_progress, None)
 }
@@ -682,19 +624,19 @@ pub fn run_until(
         let c = Checkpoint::load(&ckpt_path)?;
         InverseState::from_checkpoint(&ckpt_path, &c, cfg)?
     } else {
-        let nvs_path = nvs::checkpoint_path(&cfg.out);
-        if !nvs_path.is_file() {
+        let Some(geometry) = geometry_checkpoint(&cfg.out) else {
             anyhow::bail!(
-                "{}: no nvs checkpoint; the inverse stage starts from the geometry of `radiogs train --stage nvs` \
-                 (or run --stage all)",
-                nvs_path.display()
+                "{}: no nvs or init checkpoint; the inverse stage starts from the geometry of `radiogs train \
+                 --stage nvs` or `--stage init` (or run --stage all)",
+                cfg.out.display()
             );
+        };
+        let c = Checkpoint::load(&geometry)?;
+        if !matches!(c.meta.get("stage").and_then(|s| s.as_str()), Some("nvs" | "init")) {
+            anyhow::bail!("{}: not an nvs- or init-stage checkpoint", geometry.display());
         }
-        let c = Checkpoint::load(&nvs_path)?;
-        if c.meta.get("stage").and_then(|s| s.as_str()) != Some("nvs") {
-            anyhow::bail!("{}: not an nvs-stage checkpoint", nvs_path.display());
-        }
-        let mut surfels = c.get_surfels(&nvs_path, "params")?;
+        tracing::info!("inverse: starting from the geometry of {}", geometry.display());
+        let mut surfels = c.get_surfels(&geometry, "params")?;
         surfels.sh_degree = 3;
         let (_, extent) = dataset.camera_extent();
         InverseState::from_nvs(cfg, surfels, &images.cameras, extent)?
@@ -766,7 +708,7 @@ pub fn run_until(
             v_surfels.roughness_logits.fill(0.0);
         }
         state.adam.step(&mut state.surfels, &v_surfels);
-        state.env_adam.step(&mut state.env_log, &sc.v_env_log);
+        state.light.step(&sc.v_env_log);
         times.optimiser += t_opt.elapsed().as_secs_f64();
 
         // The consistency rows are fresh traces: keep them (when they match the cache layout).
@@ -837,11 +779,8 @@ pub fn run_until(
             losses: times.losses,
             densify: 0.0,
             optimiser: times.optimiser,
-            other: times.shading
-                + times.shading_backward
-                + times.consistency
-                + times.tracer_refit
-                + times.cache_refresh,
+            shading: times.shading + times.shading_backward + times.consistency,
+            other: times.tracer_refit + times.cache_refresh,
         },
         interrupted,
     })

@@ -6,8 +6,11 @@ pub mod densify;
 pub mod init;
 pub mod interrupt;
 pub mod inverse;
+pub mod light;
 pub mod material;
 pub mod nvs;
+pub mod pbr_image;
+pub mod pbr_init;
 
 use crate::io::dataset::Dataset;
 use config::{Stage, TrainConfig};
@@ -15,18 +18,13 @@ use config::{Stage, TrainConfig};
 /// `radiogs train`: validate, write `RUN/config.toml`, run the requested stage(s).
 pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     cfg.validate()?;
-    if cfg.stage == Stage::Init {
-        return Err(crate::NotBuilt(
-            "radiogs train --stage init (split-sum stage 1) is not built yet; --stage all runs nvs then inverse",
-        )
-        .into());
-    }
     let dataset = Dataset::open(&cfg.data)?;
     std::fs::create_dir_all(&cfg.out).map_err(|e| crate::Error::io(&cfg.out, e))?;
     cfg.save(&cfg.out.join("config.toml"))?;
     eprintln!("{}", dataset.summary());
     let stages: &[Stage] = match cfg.stage {
         Stage::Nvs => &[Stage::Nvs],
+        Stage::Init => &[Stage::Init],
         Stage::Inverse => &[Stage::Inverse],
         _ => &[Stage::Nvs, Stage::Inverse],
     };
@@ -34,14 +32,18 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     for &stage in stages {
         let (name, summary) = match stage {
             Stage::Nvs => ("nvs", nvs::run(cfg, &dataset, true)?),
+            Stage::Init => ("init", pbr_init::run(cfg, &dataset, true)?),
             _ => ("inverse", inverse::run(cfg, &dataset, true)?),
         };
         summaries.insert(name.to_string(), serde_json::to_value(&summary)?);
         let text = serde_json::to_string_pretty(&summaries)?;
         crate::io::atomic::write_atomic(&cfg.out.join("train_summary.json"), text.as_bytes())?;
         if summary.interrupted {
-            let ckpt =
-                if stage == Stage::Nvs { nvs::checkpoint_path(&cfg.out) } else { inverse::checkpoint_path(&cfg.out) };
+            let ckpt = match stage {
+                Stage::Nvs => nvs::GeometryStage::Nvs.checkpoint(&cfg.out),
+                Stage::Init => nvs::GeometryStage::Init.checkpoint(&cfg.out),
+                _ => inverse::checkpoint_path(&cfg.out),
+            };
             eprintln!(
                 "interrupted in {name} at iteration {}: checkpoint written to {}; continue with --resume",
                 summary.iterations,

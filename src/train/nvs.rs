@@ -18,11 +18,13 @@ use crate::io::dataset::{Dataset, Split};
 use crate::io::ply::{read_ply, write_ply};
 use crate::loss::{self, NormalConsistency, Ssim};
 use crate::optim::{ExponLr, LearningRates, SurfelAdam};
-use crate::raster::{self, Outputs, RasterSettings, RenderGrads};
+use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
 use crate::surfels::{SurfelGrads, Surfels};
 use crate::train::checkpoint::Checkpoint;
 use crate::train::config::{Background, TrainConfig};
 use crate::train::densify::{self, DensifyConfig, DensifyStats};
+use crate::train::light::LearnedLight;
+use crate::train::pbr_init::{self, InitLosses, InitPass};
 use crate::train::{init, interrupt};
 use anyhow::Context;
 use rand::{RngExt, SeedableRng};
@@ -50,6 +52,8 @@ impl TrainImages {
 /// Time spent in each part of an iteration.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct TimeSplit {
+    /// Stage init: per-surfel split-sum shading, its backward and the consistency.
+    pub shading: f64,
     pub raster_forward: f64,
     pub raster_backward: f64,
     pub losses: f64,
@@ -73,7 +77,38 @@ pub struct StageSummary {
     pub interrupted: bool,
 }
 
-/// The state of an nvs run: everything a checkpoint holds.
+/// The two stages that train geometry with densification: plain 2DGS (`nvs`) and RadioGS
+/// stage 1 (`init`: the same plus split-sum PBR, materials and a learned light; pbr_init.rs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GeometryStage {
+    Nvs,
+    Init,
+}
+
+impl GeometryStage {
+    pub fn name(self) -> &'static str {
+        match self {
+            GeometryStage::Nvs => "nvs",
+            GeometryStage::Init => "init",
+        }
+    }
+
+    pub fn checkpoint(self, run: &Path) -> PathBuf {
+        match self {
+            GeometryStage::Nvs => checkpoint_path(run),
+            GeometryStage::Init => run.join("checkpoint_init.bin"),
+        }
+    }
+
+    fn metrics(self, run: &Path) -> PathBuf {
+        match self {
+            GeometryStage::Nvs => run.join("metrics.jsonl"),
+            GeometryStage::Init => run.join("metrics_init.jsonl"),
+        }
+    }
+}
+
+/// The state of an nvs or init run: everything a checkpoint holds.
 pub struct NvsState {
     pub surfels: Surfels,
     pub adam: SurfelAdam,
@@ -81,13 +116,22 @@ pub struct NvsState {
     /// Last completed iteration (0 = none).
     pub iteration: u32,
     pub extent: f32,
+    /// The learned light (stage `init` only).
+    pub light: Option<LearnedLight>,
+}
+
+impl NvsState {
+    pub fn stage(&self) -> GeometryStage {
+        if self.light.is_some() { GeometryStage::Init } else { GeometryStage::Nvs }
+    }
 }
 
 pub fn checkpoint_path(run: &Path) -> PathBuf {
     run.join("checkpoint.bin")
 }
 
-fn learning_rates(cfg: &TrainConfig) -> LearningRates {
+fn learning_rates(cfg: &TrainConfig, stage: GeometryStage) -> LearningRates {
+    let materials = stage == GeometryStage::Init;
     LearningRates {
         means: cfg.lr_position_init,
         log_scales: cfg.lr_scale,
@@ -95,13 +139,18 @@ fn learning_rates(cfg: &TrainConfig) -> LearningRates {
         opacity_logits: cfg.lr_opacity,
         sh_dc: cfg.lr_sh,
         sh_rest: cfg.lr_sh / 20.0,
-        albedo_logits: 0.0,
-        roughness_logits: 0.0,
+        albedo_logits: if materials { cfg.lr_albedo } else { 0.0 },
+        roughness_logits: if materials { cfg.lr_roughness } else { 0.0 },
     }
 }
 
 impl NvsState {
-    pub fn new(cfg: &TrainConfig, dataset: &Dataset, images: &TrainImages) -> anyhow::Result<NvsState> {
+    pub fn new(
+        cfg: &TrainConfig,
+        dataset: &Dataset,
+        images: &TrainImages,
+        stage: GeometryStage,
+    ) -> anyhow::Result<NvsState> {
         let (_, extent) = dataset.camera_extent();
         let mut surfels = match &cfg.init_ply {
             Some(path) => read_ply(path)?,
@@ -118,15 +167,24 @@ impl NvsState {
             }
         };
         surfels.sh_degree = 0;
-        let adam = SurfelAdam::new(&surfels, learning_rates(cfg));
+        let light = match stage {
+            GeometryStage::Nvs => None,
+            GeometryStage::Init => {
+                let a = crate::surfels::albedo_to_logit(cfg.albedo_init);
+                surfels.albedo_logits.iter_mut().for_each(|x| *x = [a; 3]);
+                surfels.roughness_logits.iter_mut().for_each(|r| *r = crate::surfels::logit(cfg.roughness_init));
+                Some(LearnedLight::fresh(cfg)?)
+            }
+        };
+        let adam = SurfelAdam::new(&surfels, learning_rates(cfg, stage));
         let stats = DensifyStats::new(surfels.len());
-        Ok(NvsState { surfels, adam, stats, iteration: 0, extent })
+        Ok(NvsState { surfels, adam, stats, iteration: 0, extent, light })
     }
 
     pub fn to_checkpoint(&self, cfg: &TrainConfig) -> Checkpoint {
         let mut c = Checkpoint {
             meta: serde_json::json!({
-                "stage": "nvs",
+                "stage": self.stage().name(),
                 "iteration": self.iteration,
                 "extent": self.extent,
                 "adam_step": self.adam.step,
@@ -141,6 +199,9 @@ impl NvsState {
         c.put("stats.grad_accum", self.stats.grad_accum.clone());
         c.put("stats.denom", self.stats.denom.clone());
         c.put("stats.max_radii", self.stats.max_radii.clone());
+        if let Some(light) = &self.light {
+            light.put(&mut c);
+        }
         c
     }
 
@@ -152,7 +213,18 @@ impl NvsState {
                 .ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
         };
         let surfels = c.get_surfels(path, "params")?;
-        let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
+        let stage = match c.meta.get("stage").and_then(|s| s.as_str()) {
+            Some("nvs") => GeometryStage::Nvs,
+            Some("init") => GeometryStage::Init,
+            other => {
+                return Err(Error::format(path, "stage", format!("{other:?} is not an nvs or init checkpoint")));
+            }
+        };
+        let light = match stage {
+            GeometryStage::Nvs => None,
+            GeometryStage::Init => Some(LearnedLight::get(path, c, cfg)?),
+        };
+        let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg, stage));
         adam.m = c.get_surfels(path, "adam_m")?;
         adam.v = c.get_surfels(path, "adam_v")?;
         adam.step = meta_u64("adam_step")?;
@@ -165,7 +237,7 @@ impl NvsState {
             return Err(Error::format(path, "optimiser state", "row count differs from the surfel count"));
         }
         let extent = c.meta.get("extent").and_then(|v| v.as_f64()).unwrap_or(1.0) as f32;
-        Ok(NvsState { surfels, adam, stats, iteration: meta_u64("iteration")? as u32, extent })
+        Ok(NvsState { surfels, adam, stats, iteration: meta_u64("iteration")? as u32, extent, light })
     }
 }
 
@@ -210,6 +282,8 @@ struct Scratch {
     grads: RenderGrads,
     ssim: Ssim,
     normal: NormalConsistency,
+    init: InitPass,
+    v_features: Vec<f32>,
 }
 
 /// Losses of one iteration (unweighted values).
@@ -222,6 +296,8 @@ pub struct Losses {
     pub distortion: f32,
     pub normal: f32,
     pub psnr: f32,
+    /// Stage `init` only.
+    pub init: InitLosses,
 }
 
 /// One nvs iteration on view `view` with background `bg`: forward, losses, backward. Returns
@@ -243,6 +319,7 @@ fn iterate(
     let n = w * h;
     let use_dist = cfg.lambda_dist > 0.0 && iteration >= cfg.at(cfg.dist_from);
     let use_normal = cfg.lambda_normal > 0.0 && iteration >= cfg.at(cfg.normal_from);
+    let smooth_normal = state.light.is_some() && cfg.lambda_smooth_normal > 0.0;
     let settings = RasterSettings {
         window: cfg.window,
         two_sided: cfg.two_sided,
@@ -250,16 +327,25 @@ fn iterate(
         outputs: Outputs {
             colour: true,
             depth: use_normal,
-            normal: use_normal,
+            normal: use_normal || smooth_normal,
             distortion: use_dist,
             ..Outputs::none()
         },
         ..RasterSettings::default()
     };
     let t0 = Instant::now();
-    let (out, fwd) = raster::render(&state.surfels, cam, &settings, None);
+    // Stage init: the per-surfel split-sum PBR, rasterised as features (taken out of the
+    // scratch for the iteration so the pass can be borrowed mutably meanwhile).
+    if let Some(light) = &state.light {
+        scratch.init.shade(cfg, &state.surfels, light, cam);
+    }
+    let feature_rows = std::mem::take(&mut scratch.init.shading.features);
+    let features = state.light.as_ref().map(|_| Features { data: &feature_rows, channels: pbr_init::CHANNELS });
+    let ts = Instant::now();
+    times.shading += (ts - t0).as_secs_f64();
+    let (out, fwd) = raster::render(&state.surfels, cam, &settings, features);
     let t1 = Instant::now();
-    times.raster_forward += (t1 - t0).as_secs_f64();
+    times.raster_forward += (t1 - ts).as_secs_f64();
 
     let rgb = &images.rgb[view];
     let alpha = &images.alpha[view];
@@ -278,8 +364,15 @@ fn iterate(
     reset(&mut g.v_depth, use_normal);
     reset(&mut g.v_distortion, use_dist);
     g.v_normal.clear();
-    if use_normal {
+    if use_normal || smooth_normal {
         g.v_normal.resize(n, [0.0; 3]);
+    }
+    g.v_features.clear();
+    if features.is_some() {
+        g.v_features.resize(n * pbr_init::CHANNELS, 0.0);
+        if g.v_alpha.is_empty() {
+            g.v_alpha.resize(n, 0.0);
+        }
     }
     let mut losses = Losses::default();
     let lambda = cfg.lambda_dssim;
@@ -318,15 +411,42 @@ fn iterate(
         );
         losses.total += cfg.lambda_normal * losses.normal;
     }
+    if state.light.is_some() {
+        losses.total += scratch.init.image_losses(cfg, &out, &scratch.gt, alpha, bg, g, &mut losses.init);
+    }
     losses.psnr = loss::psnr(&out.colour, &scratch.gt);
     let t2 = Instant::now();
     times.losses += (t2 - t1).as_secs_f64();
 
-    let bwd = raster::render_backward(&state.surfels, cam, &settings, None, &fwd, &scratch.grads, v_surfels, None);
+    let v_features = if features.is_some() {
+        scratch.v_features.clear();
+        scratch.v_features.resize(state.surfels.len() * pbr_init::CHANNELS, 0.0);
+        Some(scratch.v_features.as_mut_slice())
+    } else {
+        None
+    };
+    let bwd =
+        raster::render_backward(&state.surfels, cam, &settings, features, &fwd, &scratch.grads, v_surfels, v_features);
     if state.stats.len() == state.surfels.len() {
         state.stats.add_view(&bwd.v_mean2d, &fwd.radii);
     }
-    times.raster_backward += t2.elapsed().as_secs_f64();
+    let t3 = Instant::now();
+    times.raster_backward += (t3 - t2).as_secs_f64();
+    if let Some(light) = &state.light {
+        let consistency = iteration >= cfg.at(cfg.simple_rc_from);
+        losses.total += scratch.init.backward(
+            cfg,
+            &state.surfels,
+            light,
+            cam,
+            &scratch.v_features,
+            consistency,
+            v_surfels,
+            &mut losses.init,
+        );
+        times.shading += t3.elapsed().as_secs_f64();
+    }
+    scratch.init.shading.features = feature_rows;
     losses
 }
 
@@ -372,25 +492,39 @@ pub fn run_until(
     show_progress: bool,
     stop_after: Option<u32>,
 ) -> anyhow::Result<StageSummary> {
+    run_stage(cfg, dataset, show_progress, stop_after, GeometryStage::Nvs)
+}
+
+/// Run (or resume) a geometry stage (`nvs` or `init`) into `cfg.out`, stopping as if
+/// interrupted after iteration `stop_after` when given.
+pub fn run_stage(
+    cfg: &TrainConfig,
+    dataset: &Dataset,
+    show_progress: bool,
+    stop_after: Option<u32>,
+    stage: GeometryStage,
+) -> anyhow::Result<StageSummary> {
     let images = TrainImages::load(dataset, Split::Train)?;
     if images.cameras.is_empty() {
         anyhow::bail!("{}: the dataset has no training views", dataset.root.display());
     }
-    let ckpt_path = checkpoint_path(&cfg.out);
+    let ckpt_path = stage.checkpoint(&cfg.out);
     let mut state = if cfg.resume && ckpt_path.is_file() {
         let c = Checkpoint::load(&ckpt_path)?;
-        if c.meta.get("stage").and_then(|s| s.as_str()) != Some("nvs") {
-            anyhow::bail!("{}: not an nvs-stage checkpoint", ckpt_path.display());
+        let state = NvsState::from_checkpoint(&ckpt_path, &c, cfg)?;
+        if state.stage() != stage {
+            anyhow::bail!("{}: not an {}-stage checkpoint", ckpt_path.display(), stage.name());
         }
-        NvsState::from_checkpoint(&ckpt_path, &c, cfg)?
+        state
     } else {
         if cfg.resume {
             tracing::warn!("--resume: no checkpoint in {}, starting fresh", cfg.out.display());
         }
-        NvsState::new(cfg, dataset, &images)?
+        NvsState::new(cfg, dataset, &images, stage)?
     };
     interrupt::install();
-    let mut metrics = open_metrics(&cfg.out.join("metrics.jsonl"), state.iteration)?;
+    let metrics_path = stage.metrics(&cfg.out);
+    let mut metrics = open_metrics(&metrics_path, state.iteration)?;
     let schedule = ExponLr::position(state.extent, cfg.iters as u64);
     let schedule = ExponLr {
         lr_init: cfg.lr_position_init * state.extent,
@@ -403,7 +537,7 @@ pub fn run_until(
         percent_dense: cfg.percent_dense,
         ..DensifyConfig::default()
     };
-    let bar = progress_bar("nvs", cfg.iters, state.iteration);
+    let bar = progress_bar(stage.name(), cfg.iters, state.iteration);
     if !show_progress {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
@@ -452,6 +586,9 @@ pub fn run_until(
         let t_opt = Instant::now();
         state.adam.lr.means = schedule.at(it as u64);
         state.adam.step(&mut state.surfels, &v_surfels);
+        if let Some(light) = &mut state.light {
+            light.step(&scratch.init.v_env_log);
+        }
         split.optimiser += t_opt.elapsed().as_secs_f64();
 
         let t_dens = Instant::now();
@@ -489,7 +626,13 @@ pub fn run_until(
         }
         split.densify += t_dens.elapsed().as_secs_f64();
         split.other = t_iter.elapsed().as_secs_f64()
-            - (split.raster_forward + split.raster_backward + split.losses + split.optimiser + split.densify);
+            - (split.shading
+                + split.raster_forward
+                + split.raster_backward
+                + split.losses
+                + split.optimiser
+                + split.densify);
+        times.shading += split.shading;
         times.raster_forward += split.raster_forward;
         times.raster_backward += split.raster_backward;
         times.losses += split.losses;
@@ -498,13 +641,33 @@ pub fn run_until(
         times.other += split.other.max(0.0);
 
         if it % cfg.log_every == 0 || it == cfg.iters {
-            let line = serde_json::json!({
-                "stage": "nvs", "iteration": it, "loss": last.total, "l1": last.l1, "dssim": last.dssim,
+            let mut line = serde_json::json!({
+                "stage": stage.name(), "iteration": it, "loss": last.total, "l1": last.l1, "dssim": last.dssim,
                 "mask": last.mask, "distortion": last.distortion, "normal": last.normal, "psnr": last.psnr,
                 "surfels": state.surfels.len(), "seconds": started.elapsed().as_secs_f64(),
             });
-            writeln!(metrics, "{line}").context("writing metrics.jsonl")?;
-            bar.set_message(format!("loss {:.4} psnr {:.2} surfels {}", last.total, last.psnr, state.surfels.len()));
+            if let (Some(obj), GeometryStage::Init) = (line.as_object_mut(), stage) {
+                let i = &last.init;
+                for (key, v) in [
+                    ("psnr_pbr", i.psnr_pbr),
+                    ("pbr_l1", i.pbr_l1),
+                    ("pbr_dssim", i.pbr_dssim),
+                    ("simple_rc", i.simple_rc),
+                    ("smooth", i.smooth),
+                    ("env_prior", i.env_prior),
+                ] {
+                    obj.insert(key.into(), v.into());
+                }
+            }
+            writeln!(metrics, "{line}").with_context(|| format!("writing {}", metrics_path.display()))?;
+            let pbr =
+                if stage == GeometryStage::Init { format!(" pbr {:.2}", last.init.psnr_pbr) } else { String::new() };
+            bar.set_message(format!(
+                "loss {:.4} psnr {:.2}{pbr} surfels {}",
+                last.total,
+                last.psnr,
+                state.surfels.len()
+            ));
         }
         bar.set_position(it as u64);
         if cfg.checkpoint_every > 0 && it % cfg.checkpoint_every == 0 && it < cfg.iters {
@@ -515,6 +678,9 @@ pub fn run_until(
     state.to_checkpoint(cfg).save(&ckpt_path)?;
     if !interrupted {
         write_ply(&cfg.out.join("point_cloud.ply"), &state.surfels)?;
+        if let Some(light) = &state.light {
+            light.env().save(&cfg.out.join("envmap.exr"))?;
+        }
     }
     Ok(StageSummary {
         iterations: state.iteration,

@@ -25,6 +25,15 @@ pub struct Footprint {
     pub weight: [f32; 4],
 }
 
+/// A bilinear footprint stored compactly: top-left texel (x0, y0) and the fractions (tx, ty).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PackedFootprint {
+    pub x0: u16,
+    pub y0: u16,
+    pub tx: f32,
+    pub ty: f32,
+}
+
 impl EnvMap {
     pub fn constant(width: usize, height: usize, rgb: [f32; 3]) -> EnvMap {
         EnvMap { width, height, texels: vec![rgb; width * height] }
@@ -102,27 +111,44 @@ impl EnvMap {
     }
 
     pub fn footprint(&self, d: [f32; 3]) -> Footprint {
+        self.unpack(self.packed_footprint(d))
+    }
+
+    /// [`footprint`](Self::footprint) in 12 bytes (top-left texel, bilinear fractions): what a
+    /// cache of fixed directions keeps so that every lookup of a changing map of this size
+    /// skips the direction → pixel mapping (its atan2/acos).
+    pub fn packed_footprint(&self, d: [f32; 3]) -> PackedFootprint {
         let (x, y) = self.dir_to_pixel_fast(d);
         let fx = x - 0.5;
         let fy = (y - 0.5).clamp(0.0, (self.height - 1) as f32);
         let x0 = fx.floor();
-        let tx = fx - x0;
         let y0 = fy.floor().min((self.height - 1) as f32);
-        let ty = fy - y0;
-        let w = self.width as i64;
-        let xi0 = (x0 as i64).rem_euclid(w) as usize;
-        let xi1 = (x0 as i64 + 1).rem_euclid(w) as usize;
-        let yi0 = y0 as usize;
-        let yi1 = (yi0 + 1).min(self.height - 1);
+        PackedFootprint {
+            x0: (x0 as i64).rem_euclid(self.width as i64) as u16,
+            y0: y0 as u16,
+            tx: fx - x0,
+            ty: fy - y0,
+        }
+    }
+
+    /// The full footprint of a packed one (made for a map of this size).
+    #[inline]
+    pub fn unpack(&self, p: PackedFootprint) -> Footprint {
+        let (w, h) = (self.width, self.height);
+        let (xi0, yi0) = (p.x0 as usize, p.y0 as usize);
+        let xi1 = if xi0 + 1 == w { 0 } else { xi0 + 1 };
+        let yi1 = (yi0 + 1).min(h - 1);
+        let (tx, ty) = (p.tx, p.ty);
         Footprint {
-            index: [yi0 * self.width + xi0, yi0 * self.width + xi1, yi1 * self.width + xi0, yi1 * self.width + xi1],
+            index: [yi0 * w + xi0, yi0 * w + xi1, yi1 * w + xi0, yi1 * w + xi1],
             weight: [(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty],
         }
     }
 
-    /// Bilinear radiance in direction d (unit).
-    pub fn lookup(&self, d: [f32; 3]) -> [f32; 3] {
-        let fp = self.footprint(d);
+    /// Bilinear radiance of a packed footprint.
+    #[inline]
+    pub fn lookup_packed(&self, p: PackedFootprint) -> [f32; 3] {
+        let fp = self.unpack(p);
         let mut c = [0.0f32; 3];
         for k in 0..4 {
             let t = self.texels[fp.index[k]];
@@ -131,6 +157,11 @@ impl EnvMap {
             }
         }
         c
+    }
+
+    /// Bilinear radiance in direction d (unit).
+    pub fn lookup(&self, d: [f32; 3]) -> [f32; 3] {
+        self.lookup_packed(self.packed_footprint(d))
     }
 
     /// Backward of [`lookup`] with respect to the texels: adds into `v_texels`.

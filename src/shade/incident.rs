@@ -12,8 +12,9 @@
 //! Rays leave from μ + offset·n: 2D surfels of a flat patch are nearly coplanar, and rays
 //! from the exact centre at the 10° floor would hit the neighbours' disks at tiny t.
 
-use super::pbr::PbrInputs;
+use super::pbr::{CachedFootprints, PbrInputs};
 use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
+use crate::envmap::{EnvMap, PackedFootprint};
 use crate::surfels::Surfels;
 use crate::trace::{Features, Ray, RayOutput, Tracer, trace};
 use rayon::prelude::*;
@@ -28,6 +29,15 @@ pub struct IncidentCache {
     pub visibility: Vec<f32>,
     /// Linear radiance.
     pub indirect: Vec<[f32; 3]>,
+    /// Env footprints of `dirs` for maps of `footprint_size` (width, height), made by
+    /// [`prepare_footprints`](Self::prepare_footprints); empty until then and after a refresh.
+    pub footprints: Vec<PackedFootprint>,
+    pub footprint_size: (usize, usize),
+}
+
+/// A texel-less map of `size` (width, height): footprints only need the size.
+fn footprint_grid(size: (usize, usize)) -> EnvMap {
+    EnvMap { width: size.0, height: size.1, texels: Vec::new() }
 }
 
 /// sRGB-encoded → linear for a traced colour (no clamp above 1: SH colours may exceed it).
@@ -102,6 +112,7 @@ impl IncidentCache {
         let n = surfels.len();
         let s = samples;
         self.samples = s;
+        self.footprints.clear();
         self.dirs.resize(n * s, [0.0; 3]);
         self.visibility.resize(n * s, 0.0);
         self.indirect.resize(n * s, [0.0; 3]);
@@ -147,6 +158,27 @@ impl IncidentCache {
         self.dirs[i * s..(i + 1) * s].copy_from_slice(dirs);
         self.visibility[i * s..(i + 1) * s].copy_from_slice(visibility);
         self.indirect[i * s..(i + 1) * s].copy_from_slice(indirect);
+        if self.footprints.len() == self.dirs.len() {
+            let grid = footprint_grid(self.footprint_size);
+            for (f, &d) in self.footprints[i * s..(i + 1) * s].iter_mut().zip(dirs) {
+                *f = grid.packed_footprint(d);
+            }
+        }
+    }
+
+    /// Make (or keep) the env footprints of every cached direction for maps of `env`'s size,
+    /// so that [`inputs`](Self::inputs) hands them to the shading.
+    pub fn prepare_footprints(&mut self, env: &EnvMap) {
+        let size = (env.width, env.height);
+        if self.footprints.len() == self.dirs.len() && self.footprint_size == size {
+            return;
+        }
+        let grid = footprint_grid(size);
+        self.footprints.resize(self.dirs.len(), PackedFootprint::default());
+        self.footprints.par_iter_mut().zip(self.dirs.par_iter()).with_min_len(4096).for_each(|(f, &d)| {
+            *f = grid.packed_footprint(d);
+        });
+        self.footprint_size = size;
     }
 
     /// Rendering-equation inputs over the whole cache.
@@ -169,6 +201,11 @@ impl IncidentCache {
             weight: self.weight,
             sample_weights: None,
             specular: true,
+            footprints: (self.footprints.len() == self.dirs.len()).then_some(CachedFootprints {
+                data: &self.footprints,
+                width: self.footprint_size.0,
+                height: self.footprint_size.1,
+            }),
         }
     }
 
@@ -218,6 +255,58 @@ mod tests {
                 decode_derivative(c)
             );
         }
+    }
+
+    /// Shading from the cached footprints equals shading that maps every direction itself
+    /// (bit for bit), after a row is overwritten too; an env of another size ignores them.
+    #[test]
+    fn cached_footprints_give_the_same_shading() {
+        use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
+        use rand::{RngExt, SeedableRng};
+        let s = Surfels::random_in_box(40, [-1.0; 3], [1.0; 3], 4);
+        let tracer = Tracer::build(&s, &TraceSettings::default());
+        let mut cache = IncidentCache::default();
+        cache.refresh(&tracer, &s, 8, 1e-3, 9);
+        let mut rg = rand_pcg::Pcg64::seed_from_u64(5);
+        let mut env = EnvMap::constant(32, 16, [0.0; 3]);
+        env.texels.iter_mut().for_each(|t| *t = [rg.random(), rg.random(), rg.random()]);
+        let n = s.len();
+        let albedo: Vec<[f32; 3]> = (0..n).map(|i| s.albedo(i)).collect();
+        let rough: Vec<f32> = (0..n).map(|i| s.roughness(i)).collect();
+        let normal: Vec<[f32; 3]> = (0..n).map(|i| s.normal(i)).collect();
+        let view: Vec<[f32; 3]> = normal.iter().map(|nn| [nn[0], nn[1] + 0.3, nn[2]]).collect();
+        let view: Vec<[f32; 3]> = view.iter().map(|v| crate::train::material::view_dir([0.0; 3], *v)).collect();
+        let ids: Vec<u32> = (0..n as u32).collect();
+        let v_up: Vec<[f32; 3]> = (0..n).map(|_| [rg.random(), rg.random(), rg.random()]).collect();
+        let shade = |cache: &IncidentCache, env: &EnvMap| {
+            let inp = cache.inputs(&albedo, &rough, &normal, &view);
+            let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
+            shade_subset(&inp, env, &ids, &mut d, &mut ind).unwrap();
+            let mut g = SubsetGrads::default();
+            shade_subset_backward(&inp, env, &ids, &v_up, &v_up, Detach::default(), &mut g).unwrap();
+            (d, ind, g.v_normal, g.v_env, inp.footprints.is_some())
+        };
+        let plain = shade(&cache, &env);
+        assert!(!plain.4);
+        cache.prepare_footprints(&env);
+        let cached = shade(&cache, &env);
+        assert!(cached.4);
+        assert!(plain.0 == cached.0 && plain.1 == cached.1 && plain.2 == cached.2 && plain.3 == cached.3);
+        // A row overwritten with other directions: its footprints follow.
+        let row: Vec<[f32; 3]> =
+            (0..8).map(|k| crate::train::material::view_dir([0.0; 3], [k as f32 - 3.5, 1.0, 2.0])).collect();
+        cache.overwrite_row(3, &row, &[0.5; 8], &[[0.2; 3]; 8]);
+        let cached = shade(&cache, &env);
+        cache.footprints.clear();
+        let plain = shade(&cache, &env);
+        assert!(plain.0 == cached.0 && plain.3 == cached.3, "after overwrite_row");
+        // Another map size: the footprints are not used.
+        cache.prepare_footprints(&env);
+        let small = env.box_downsample(2);
+        let with = shade(&cache, &small);
+        cache.footprints.clear();
+        let without = shade(&cache, &small);
+        assert!(with.0 == without.0 && with.3 == without.3);
     }
 
     #[test]

@@ -16,7 +16,7 @@
 //! at the end.
 
 use super::{V3, add, brdf, dot, scale, to32, to64};
-use crate::envmap::EnvMap;
+use crate::envmap::{EnvMap, PackedFootprint};
 use crate::error::{Error, Result};
 use rayon::prelude::*;
 
@@ -44,6 +44,25 @@ pub struct PbrInputs<'a> {
     /// Include the GGX specular lobe in f (true), or only the Lambert term (false: the caller
     /// adds the specular part another way, e.g. split-sum).
     pub specular: bool,
+    /// Optional env footprints of `dirs` (N·S), used when the env has their size: the same
+    /// lookups without the per-sample direction → pixel mapping.
+    pub footprints: Option<CachedFootprints<'a>>,
+}
+
+/// Env footprints of fixed directions for maps of `width` × `height`.
+#[derive(Clone, Copy)]
+pub struct CachedFootprints<'a> {
+    pub data: &'a [PackedFootprint],
+    pub width: usize,
+    pub height: usize,
+}
+
+impl PbrInputs<'_> {
+    /// The footprints when they were made for `env`'s size.
+    #[inline]
+    fn footprints_for(&self, env: &EnvMap) -> Option<&[PackedFootprint]> {
+        self.footprints.filter(|f| f.width == env.width && f.height == env.height).map(|f| f.data)
+    }
 }
 
 /// What the backward does not differentiate (the published method's detach switches).
@@ -132,6 +151,7 @@ pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
     let (mut direct, mut indirect) = ([0.0; 3], [0.0; 3]);
+    let footprints = inp.footprints_for(env);
     for k in i * s..(i + 1) * s {
         let d = to64(inp.dirs[k]);
         let c = dot(n, d);
@@ -139,7 +159,10 @@ pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
             continue;
         }
         let f = if inp.specular { brdf::eval(a, r, n, wo, d) } else { scale(a, std::f64::consts::FRAC_1_PI) };
-        let le = to64(env.lookup(inp.dirs[k]));
+        let le = to64(match footprints {
+            Some(f) => env.lookup_packed(f[k]),
+            None => env.lookup(inp.dirs[k]),
+        });
         let v = inp.visibility[k] as f64;
         let li = to64(inp.indirect[k]);
         let wc = inp.w(k) * c;
@@ -182,6 +205,7 @@ fn backward_one(
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
     let (mut va, mut vr, mut vn, mut vwo) = ([0.0; 3], 0.0, [0.0; 3], [0.0; 3]);
+    let footprints = inp.footprints_for(env);
     for (j, k) in (i * s..(i + 1) * s).enumerate() {
         let d = to64(inp.dirs[k]);
         let c = dot(n, d);
@@ -191,7 +215,10 @@ fn backward_one(
             continue;
         }
         // One footprint for the lookup and its backward (the atan2/acos are the costly part).
-        let fp = env.footprint(inp.dirs[k]);
+        let fp = match footprints {
+            Some(f) => env.unpack(f[k]),
+            None => env.footprint(inp.dirs[k]),
+        };
         let mut le = [0.0f64; 3];
         for q in 0..4 {
             let t = env.texels[fp.index[q]];
@@ -471,6 +498,7 @@ mod tests {
                 weight: self.weight,
                 sample_weights: None,
                 specular: self.specular,
+                footprints: None,
             }
         }
     }

@@ -204,6 +204,7 @@ pub fn radiometric_consistency(
         weight: sc.weight,
         sample_weights: None,
         specular: true,
+        footprints: None,
     };
     sc.direct.resize(m, [0.0; 3]);
     sc.indirect.resize(m, [0.0; 3]);

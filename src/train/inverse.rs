@@ -181,6 +181,7 @@ impl InverseState {
             dirs: triples("cache.dirs")?,
             visibility: c.require(path, "cache.visibility")?.to_vec(),
             indirect: triples("cache.indirect")?,
+            ..IncidentCache::default()
         };
         if cache.len() != surfels.len() && !cache.is_empty() {
             return Err(Error::format(path, "cache", "row count differs from the surfel count"));
@@ -679,6 +680,7 @@ pub fn run_until(
         v_surfels.sh_degree = state.surfels.sh_degree;
         let env = state.env();
         let env_s = env.box_downsample(sample_factor(cfg));
+        state.cache.prepare_footprints(&env_s);
         let split_sum = match cfg.specular {
             Specular::SplitSum => Some(SplitSum::new(&env)?),
             Specular::Mc => None,

@@ -119,32 +119,72 @@ impl IncidentCache {
         if n == 0 || s == 0 {
             return;
         }
-        let mut rays = vec![Ray::default(); n * s];
-        let weights: Vec<f32> = self
-            .dirs
-            .par_chunks_mut(s)
-            .zip(rays.par_chunks_mut(s))
-            .enumerate()
-            .map(|(i, (d, r))| surfel_rays(surfels, i, offset, rotation_for(seed, i), d, r))
-            .collect();
-        self.weight = weights[0];
-        let mut out = vec![RayOutput::default(); n * s];
-        match radiance {
-            Some(data) => {
-                let mut composited = vec![0.0f32; n * s * 3];
-                trace(tracer, surfels, &rays, Some(Features { data, channels: 3 }), &mut out, Some(&mut composited));
-                for (k, o) in out.iter().enumerate() {
-                    self.visibility[k] = o.transmittance;
-                    self.indirect[k] = [composited[3 * k], composited[3 * k + 1], composited[3 * k + 2]];
+        let all: Vec<u32> = (0..n as u32).collect();
+        self.trace_rows(tracer, surfels, &all, offset, seed, radiance);
+    }
+
+    /// Re-trace only the listed surfels' rows (no gradients), with the directions a full
+    /// [`refresh`](Self::refresh) of `seed` would give them; the cache keeps its size, and
+    /// the rows' env footprints follow when they are kept.
+    pub fn refresh_rows(&mut self, tracer: &Tracer, surfels: &Surfels, rows: &[u32], offset: f32, seed: u64) {
+        if self.len() != surfels.len() || self.samples == 0 || rows.is_empty() {
+            return;
+        }
+        self.trace_rows(tracer, surfels, rows, offset, seed, None);
+        if self.footprints.len() == self.dirs.len() {
+            let grid = footprint_grid(self.footprint_size);
+            let s = self.samples;
+            for &i in rows {
+                let i = i as usize;
+                for k in i * s..(i + 1) * s {
+                    self.footprints[k] = grid.packed_footprint(self.dirs[k]);
                 }
             }
-            None => {
-                trace(tracer, surfels, &rays, None, &mut out, None);
-                for (k, o) in out.iter().enumerate() {
-                    self.visibility[k] = o.transmittance;
-                    self.indirect[k] =
-                        if tracer.settings.linear_radiance { o.radiance } else { o.radiance.map(decode) };
-                }
+        }
+    }
+
+    fn trace_rows(
+        &mut self,
+        tracer: &Tracer,
+        surfels: &Surfels,
+        rows: &[u32],
+        offset: f32,
+        seed: u64,
+        radiance: Option<&[f32]>,
+    ) {
+        let s = self.samples;
+        let m = rows.len();
+        let mut dirs = vec![[0.0f32; 3]; m * s];
+        let mut rays = vec![Ray::default(); m * s];
+        let weights: Vec<f32> = dirs
+            .par_chunks_mut(s)
+            .zip(rays.par_chunks_mut(s))
+            .zip(rows.par_iter())
+            .map(|((d, r), &i)| surfel_rays(surfels, i as usize, offset, rotation_for(seed, i as usize), d, r))
+            .collect();
+        self.weight = weights[0];
+        let mut out = vec![RayOutput::default(); m * s];
+        let mut composited = vec![0.0f32; if radiance.is_some() { m * s * 3 } else { 0 }];
+        match radiance {
+            Some(data) => {
+                trace(tracer, surfels, &rays, Some(Features { data, channels: 3 }), &mut out, Some(&mut composited))
+            }
+            None => trace(tracer, surfels, &rays, None, &mut out, None),
+        }
+        for (j, &i) in rows.iter().enumerate() {
+            let i = i as usize;
+            for q in 0..s {
+                let (k, o) = (i * s + q, &out[j * s + q]);
+                self.dirs[k] = dirs[j * s + q];
+                self.visibility[k] = o.transmittance;
+                self.indirect[k] = if radiance.is_some() {
+                    let c = &composited[3 * (j * s + q)..][..3];
+                    [c[0], c[1], c[2]]
+                } else if tracer.settings.linear_radiance {
+                    o.radiance
+                } else {
+                    o.radiance.map(decode)
+                };
             }
         }
     }
@@ -254,6 +294,34 @@ mod tests {
                 "{c}: {fd} vs {}",
                 decode_derivative(c)
             );
+        }
+    }
+
+    /// Re-tracing a subset of rows gives those rows exactly what a full refresh with the same
+    /// seed gives them and leaves the other rows alone; their footprints follow.
+    #[test]
+    fn refreshing_some_rows_matches_a_full_refresh_there() {
+        let s = Surfels::random_in_box(60, [-1.0; 3], [1.0; 3], 6);
+        let tracer = Tracer::build(&s, &TraceSettings::default());
+        let mut full = IncidentCache::default();
+        full.refresh(&tracer, &s, 8, 1e-3, 21);
+        let mut partial = IncidentCache::default();
+        partial.refresh(&tracer, &s, 8, 1e-3, 4);
+        let env = EnvMap::constant(16, 8, [1.0; 3]);
+        partial.prepare_footprints(&env);
+        let before = partial.clone();
+        let rows = [2u32, 17, 18, 59];
+        partial.refresh_rows(&tracer, &s, &rows, 1e-3, 21);
+        assert!(partial.visibility.iter().any(|&v| v < 1.0), "the test needs occlusion");
+        for i in 0..s.len() {
+            let r = i * 8..(i + 1) * 8;
+            let want = if rows.contains(&(i as u32)) { &full } else { &before };
+            assert!(partial.dirs[r.clone()] == want.dirs[r.clone()], "row {i}: directions");
+            assert!(partial.visibility[r.clone()] == want.visibility[r.clone()], "row {i}: visibility");
+            assert!(partial.indirect[r.clone()] == want.indirect[r.clone()], "row {i}: indirect");
+            for k in r {
+                assert_eq!(partial.footprints[k], env.packed_footprint(partial.dirs[k]), "row {i}: footprint");
+            }
         }
     }
 

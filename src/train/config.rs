@@ -160,7 +160,9 @@ pub struct TrainConfig {
     /// Incident directions S per surfel in the cache and in the PBR render.
     #[arg(long, default_value_t = 16)]
     pub pbr_samples: usize,
-    /// Refresh the incident cache by tracing every this many iterations [100].
+    /// Incident-cache age limit [100: the published full refresh every 100 iterations]: every
+    /// cache_every/4 iterations the rows that would otherwise grow older are re-traced; rows
+    /// the consistency step traced meanwhile are fresh and kept.
     #[arg(long, default_value_t = 100)]
     pub cache_every: u32,
     /// Radiometric consistency: surfels per iteration [2048].

@@ -13,7 +13,9 @@
 //! 3. radiometric consistency on B random surfels × R traced rays with gradients through the
 //!    tracer (consistency.rs); the traced rows overwrite the cache when R = S;
 //! 4. env priors (white light, TV), Adam on surfels (geometry lr × 0.01) and env (log radiance);
-//! 5. the tracer is refitted every step; the cache is refreshed every `cache_every` steps.
+//! 5. the tracer is refitted every step; every `cache_every`/4 steps the cache rows that would
+//!    otherwise grow older than `cache_every` are re-traced (no row is older than the
+//!    published full refresh every `cache_every` allows; rows the consistency traced are kept).
 //!
 //! No densification. Writes `checkpoint_inverse.bin`, `point_cloud.ply` (with material
 //! fields) and `envmap.exr`.
@@ -74,6 +76,8 @@ pub struct InverseState {
     pub adam: SurfelAdam,
     pub light: LearnedLight,
     pub cache: IncidentCache,
+    /// The iteration each cache row was last traced (refresh or consistency).
+    pub traced_at: Vec<u32>,
     pub iteration: u32,
     pub extent: f32,
 }
@@ -127,6 +131,7 @@ impl InverseState {
             adam,
             surfels,
             cache: IncidentCache::default(),
+            traced_at: Vec::new(),
             iteration: 0,
             extent,
         })
@@ -153,6 +158,8 @@ impl InverseState {
         c.put("cache.dirs", self.cache.dirs.iter().flatten().copied().collect());
         c.put("cache.visibility", self.cache.visibility.clone());
         c.put("cache.indirect", self.cache.indirect.iter().flatten().copied().collect());
+        // Iterations (< 2^24) are exact in f32.
+        c.put("cache.traced_at", self.traced_at.iter().map(|&t| t as f32).collect());
         c
     }
 
@@ -186,7 +193,13 @@ impl InverseState {
         if cache.len() != surfels.len() && !cache.is_empty() {
             return Err(Error::format(path, "cache", "row count differs from the surfel count"));
         }
-        Ok(InverseState { surfels, adam, light, cache, iteration: meta_u64("iteration")? as u32, extent })
+        let iteration = meta_u64("iteration")? as u32;
+        // Checkpoints from before the per-row refresh: every row as old as the checkpoint.
+        let traced_at = match c.blob("cache.traced_at") {
+            Some(t) if t.len() == cache.len() => t.iter().map(|&x| x as u32).collect(),
+            _ => vec![iteration; cache.len()],
+        };
+        Ok(InverseState { surfels, adam, light, cache, traced_at, iteration, extent })
     }
 }
 
@@ -650,8 +663,14 @@ pub fn run_until(
     if state.cache.len() != state.surfels.len() || state.cache.samples != cfg.pbr_samples {
         let t = Instant::now();
         state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, offset, cfg.seed ^ state.iteration as u64);
+        state.traced_at = vec![state.iteration; state.surfels.len()];
         times.cache_refresh += t.elapsed().as_secs_f64();
     }
+    // Rows are re-traced when they would otherwise grow older than `cache_every` iterations
+    // (the published full refresh every 100 iterations bounds the age the same way); rows the
+    // consistency step traced meanwhile are fresh already, so each check traces fewer rows.
+    let check_every = (cfg.cache_every / 4).max(1);
+    let mut stale: Vec<u32> = Vec::new();
     let bar = progress_bar("inverse", cfg.inverse_iters, state.iteration);
     if !show_progress {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
@@ -717,7 +736,9 @@ pub fn run_until(
         if cfg.lambda_rc > 0.0 && cfg.rc_rays == cfg.pbr_samples {
             for k in 0..sc.rc.ids.len() {
                 let (d, v, ind) = sc.rc.row(k, cfg.rc_rays);
-                state.cache.overwrite_row(sc.rc.ids[k] as usize, &d, &v, &ind);
+                let i = sc.rc.ids[k] as usize;
+                state.cache.overwrite_row(i, &d, &v, &ind);
+                state.traced_at[i] = it;
             }
         }
         let t_fit = Instant::now();
@@ -726,9 +747,15 @@ pub fn run_until(
             tracer = Tracer::build(&state.surfels, &trace_settings());
         }
         times.tracer_refit += t_fit.elapsed().as_secs_f64();
-        if it % cfg.cache_every == 0 && it < cfg.inverse_iters {
+        if it % check_every == 0 && it < cfg.inverse_iters {
             let t = Instant::now();
-            state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, offset, cfg.seed ^ it as u64);
+            let limit = cfg.cache_every.saturating_sub(check_every);
+            stale.clear();
+            stale.extend((0..state.traced_at.len() as u32).filter(|&i| it - state.traced_at[i as usize] > limit));
+            state.cache.refresh_rows(&tracer, &state.surfels, &stale, offset, cfg.seed ^ it as u64);
+            for &i in &stale {
+                state.traced_at[i as usize] = it;
+            }
             times.cache_refresh += t.elapsed().as_secs_f64();
         }
         if it % cfg.log_every == 0 || it == cfg.inverse_iters {

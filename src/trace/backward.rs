@@ -1,5 +1,8 @@
 //! Backward of [`crate::trace::trace`] by re-casting each ray (nothing is stored between the
-//! passes): the re-cast gathers the ray's composited hits into a per-thread scratch list, then
+//! passes; [`trace_backward_recorded`] instead replays the hits a
+//! [`crate::trace::forward::trace_recorded`] forward kept — the consistency step's rays, where
+//! the second cast was a third of the step): the re-cast gathers the ray's composited hits into
+//! a per-thread scratch list, then
 //! walks them back to front with suffix sums S_j = Σ_{k>j} T_k α_k x_k of every payload x
 //! (colour or features, depth, normal):
 //!
@@ -22,7 +25,7 @@ use crate::sh::{self, SH_COEFFS};
 use crate::shade::incident::{decode, decode_derivative};
 use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat, rotation_from_quat_backward, sigmoid};
 use crate::trace::bvh::{Hit, PreparedRay, Tracer};
-use crate::trace::forward::{coherent_order, march, sh_colour, unit};
+use crate::trace::forward::{HitRecord, coherent_order, march, sh_colour, unit};
 use crate::trace::{ALPHA_MAX, Features, Ray, RayGrad};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -84,8 +87,40 @@ pub fn trace_backward(
     grads: &[RayGrad],
     v_features_out: Option<&[f32]>,
     v_surfels: &mut SurfelGrads,
+    v_surfel_features: Option<&mut [f32]>,
+    v_rays: Option<&mut [Ray]>,
+) {
+    backward(tracer, surfels, rays, features, grads, v_features_out, v_surfels, v_surfel_features, v_rays, None);
+}
+
+/// [`trace_backward`] for rays traced by [`crate::trace::forward::trace_recorded`] (SH
+/// radiance payload) with the surfels and tracer unchanged since: the recorded hits replace
+/// the second cast of every ray. Bitwise the same gradients.
+pub fn trace_backward_recorded(
+    tracer: &Tracer,
+    surfels: &Surfels,
+    rays: &[Ray],
+    grads: &[RayGrad],
+    v_surfels: &mut SurfelGrads,
+    v_rays: Option<&mut [Ray]>,
+    record: &HitRecord,
+) {
+    assert_eq!(record.spans.len(), rays.len(), "trace_backward_recorded: the record is of another ray set");
+    backward(tracer, surfels, rays, None, grads, None, v_surfels, None, v_rays, Some(record));
+}
+
+#[allow(clippy::too_many_arguments)]
+fn backward(
+    tracer: &Tracer,
+    surfels: &Surfels,
+    rays: &[Ray],
+    features: Option<Features>,
+    grads: &[RayGrad],
+    v_features_out: Option<&[f32]>,
+    v_surfels: &mut SurfelGrads,
     mut v_surfel_features: Option<&mut [f32]>,
     v_rays: Option<&mut [Ray]>,
+    record: Option<&HitRecord>,
 ) {
     let n = surfels.len();
     assert_eq!(grads.len(), rays.len(), "trace_backward: {} grads for {} rays", grads.len(), rays.len());
@@ -114,7 +149,7 @@ pub fn trace_backward(
     }
     let pool: Mutex<Vec<GradBuf>> = Mutex::new(Vec::new());
     let want_rays = v_rays.is_some();
-    let ctx = Ctx { tracer, surfels, ncoef, channels, fdata, vfo, o_feat, stride, use_features, want_rays };
+    let ctx = Ctx { tracer, surfels, ncoef, channels, fdata, vfo, o_feat, stride, use_features, want_rays, record };
 
     // One block of rays: accumulate into a pooled dense buffer, then hand back the touched
     // records as a sparse list (first-touch order) and clear the buffer. Which buffer a block
@@ -173,7 +208,14 @@ pub fn trace_backward(
     };
     // Blocks follow the same coherent ray order as the forward pass (a fixed function of the
     // rays, so the reduction stays deterministic).
-    let order = coherent_order(rays);
+    let computed;
+    let order: &[u32] = match record {
+        Some(rec) => &rec.order,
+        None => {
+            computed = coherent_order(rays);
+            &computed
+        }
+    };
     let wave = RAYS_PER_BLOCK * BLOCKS_PER_WAVE;
     match v_rays {
         Some(vr) => {
@@ -218,6 +260,8 @@ struct Ctx<'a> {
     use_features: bool,
     /// ∂L/∂(origin, dir) wanted: otherwise the SH direction terms are skipped.
     want_rays: bool,
+    /// The forward pass's hits (then the rays are not cast again).
+    record: Option<&'a HitRecord>,
 }
 
 #[inline(always)]
@@ -235,9 +279,18 @@ impl Ctx<'_> {
         let two_sided = tracer.settings.two_sided;
         let ch = self.channels;
         let use_features = self.use_features;
-        let mut hits = std::mem::take(&mut buf.hits);
-        hits.clear();
-        let t_final = march(tracer, &r, |h, trans| hits.push((*h, trans)));
+        let mut cast = std::mem::take(&mut buf.hits);
+        cast.clear();
+        let (hits, t_final): (&[(Hit, f32)], f32) = match self.record {
+            Some(rec) => {
+                let (a, b) = rec.spans[ray_index];
+                (&rec.hits[a as usize..b as usize], rec.t_final[ray_index])
+            }
+            None => {
+                let t = march(tracer, &r, |h, trans| cast.push((*h, trans)));
+                (&cast, t)
+            }
+        };
         let v_fo: &[f32] = if self.vfo.is_empty() { &[] } else { &self.vfo[ray_index * ch..(ray_index + 1) * ch] };
         let mut sfeat = std::mem::take(&mut buf.feat_scratch);
         sfeat.clear();
@@ -361,7 +414,7 @@ impl Ctx<'_> {
                 v_d[a] += (v_dh[a] - dd * dh[a]) / dlen;
             }
         }
-        buf.hits = hits;
+        buf.hits = cast;
         buf.feat_scratch = sfeat;
         Ray { origin: v_o, dir: v_d }
     }

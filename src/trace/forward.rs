@@ -102,10 +102,10 @@ pub fn trace(
             .zip(order.par_iter())
             .with_min_len(32)
             .for_each(|((o, of), &k)| {
-                *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, Some((f.data, ch, of)))
+                *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, Some((f.data, ch, of)), None)
             }),
         None => sorted.par_iter_mut().zip(order.par_iter()).with_min_len(32).for_each(|(o, &k)| {
-            *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, None);
+            *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, None, None);
         }),
     }
     let mut out_features = out_features;
@@ -115,6 +115,69 @@ pub fn trace(
         if let Some(of) = out_features.as_deref_mut().filter(|_| ch > 0) {
             of[k * ch..(k + 1) * ch].copy_from_slice(&sorted_features[j * ch..(j + 1) * ch]);
         }
+    }
+}
+
+/// The hits each ray composited in a forward pass (with the transmittance in front of each)
+/// and the coherent order it ran in, kept so that the backward need not cast the rays again
+/// ([`crate::trace::backward::trace_backward_recorded`]). Reused between calls.
+#[derive(Clone, Debug, Default)]
+pub struct HitRecord {
+    pub(crate) order: Vec<u32>,
+    /// Per ray (caller's index): its hits' range in `hits`.
+    pub(crate) spans: Vec<(u32, u32)>,
+    pub(crate) hits: Vec<(Hit, f32)>,
+    /// Per ray: the final transmittance.
+    pub(crate) t_final: Vec<f32>,
+    chunks: Vec<Vec<(Hit, f32)>>,
+}
+
+/// Rays per parallel task of [`trace_recorded`] (their hit lists are joined in order).
+const RECORD_CHUNK: usize = 64;
+
+/// [`trace`] with SH radiance as the payload, keeping every ray's hits in `record` for
+/// [`crate::trace::backward::trace_backward_recorded`]. Same outputs as `trace`.
+pub fn trace_recorded(tracer: &Tracer, surfels: &Surfels, rays: &[Ray], out: &mut [RayOutput], record: &mut HitRecord) {
+    assert_eq!(out.len(), rays.len(), "trace: out has {} entries for {} rays", out.len(), rays.len());
+    assert!(
+        !tracer.count_mismatch(surfels),
+        "trace: tracer built for {} surfels, scene has {}",
+        tracer.count,
+        surfels.len()
+    );
+    let ncoef = sh::coeff_count(surfels.sh_degree);
+    let n = rays.len();
+    record.order = coherent_order(rays);
+    let tasks = n.div_ceil(RECORD_CHUNK);
+    record.chunks.resize_with(tasks, Vec::new);
+    let mut sorted = vec![RayOutput::default(); n];
+    let mut counts = vec![0u32; n];
+    sorted
+        .par_chunks_mut(RECORD_CHUNK)
+        .zip(counts.par_chunks_mut(RECORD_CHUNK))
+        .zip(record.order.par_chunks(RECORD_CHUNK))
+        .zip(record.chunks.par_iter_mut())
+        .for_each(|(((outs, counts), ids), hits)| {
+            hits.clear();
+            for ((o, c), &k) in outs.iter_mut().zip(counts.iter_mut()).zip(ids) {
+                let before = hits.len();
+                *o = trace_one(tracer, surfels, &rays[k as usize], ncoef, None, Some(hits));
+                *c = (hits.len() - before) as u32;
+            }
+        });
+    record.hits.clear();
+    for c in &record.chunks {
+        record.hits.extend_from_slice(c);
+    }
+    record.spans.resize(n, (0, 0));
+    record.t_final.resize(n, 1.0);
+    let mut start = 0u32;
+    for (j, &k) in record.order.iter().enumerate() {
+        let k = k as usize;
+        record.spans[k] = (start, start + counts[j]);
+        start += counts[j];
+        record.t_final[k] = sorted[j].transmittance;
+        out[k] = sorted[j];
     }
 }
 
@@ -173,6 +236,7 @@ fn trace_one(
     ray: &Ray,
     ncoef: usize,
     mut feat: Option<(&[f32], usize, &mut [f32])>,
+    mut record: Option<&mut Vec<(Hit, f32)>>,
 ) -> RayOutput {
     let r = PreparedRay::new(ray.origin, ray.dir);
     let basis = sh::basis(unit(ray.dir).0);
@@ -180,6 +244,9 @@ fn trace_one(
     let two_sided = tracer.settings.two_sided;
     let linear = tracer.settings.linear_radiance;
     let t_final = march(tracer, &r, |h, trans| {
+        if let Some(rec) = record.as_deref_mut() {
+            rec.push((*h, trans));
+        }
         let w = trans * h.alpha;
         let i = h.index as usize;
         match feat.as_mut() {

@@ -21,9 +21,9 @@ mod reference;
 #[cfg(test)]
 mod tests;
 
-pub use backward::trace_backward;
+pub use backward::{trace_backward, trace_backward_recorded};
 pub use bvh::Tracer;
-pub use forward::{render_camera_traced, trace};
+pub use forward::{HitRecord, render_camera_traced, trace, trace_recorded};
 
 /// Smallest α composited (and the opacity below which a surfel has no bounds).
 pub const ALPHA_MIN: f32 = 1.0 / 255.0;

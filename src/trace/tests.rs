@@ -758,3 +758,35 @@ fn coherent_order_leaves_results_in_the_callers_places() {
     }
     assert!(out.iter().filter(|o| o.transmittance < 1.0).count() > 100);
 }
+
+/// The recorded forward gives `trace`'s outputs, and the backward replaying its hits gives
+/// bitwise the gradients of the backward that casts the rays again (more than 64 rays, so the
+/// coherent order is in play; a tiny chunk and early termination on).
+#[test]
+fn recorded_hits_replay_the_backward_exactly() {
+    let s = random_scene(300, 17, 3);
+    for settings in [TraceSettings::default(), TraceSettings { chunk: 2, min_transmittance: 0.2, ..Default::default() }]
+    {
+        let tracer = Tracer::build(&s, &settings);
+        let rays = random_rays(150, 23, &s);
+        let mut plain = vec![RayOutput::default(); rays.len()];
+        trace(&tracer, &s, &rays, None, &mut plain, None);
+        let mut record = crate::trace::HitRecord::default();
+        let mut recorded = vec![RayOutput::default(); rays.len()];
+        crate::trace::trace_recorded(&tracer, &s, &rays, &mut recorded, &mut record);
+        assert_eq!(plain, recorded);
+        assert!(record.hits.len() > rays.len(), "the test needs hits: {}", record.hits.len());
+        let g: Vec<RayGrad> = (0..rays.len())
+            .map(|k| {
+                let x = (k % 7) as f32 * 0.1 - 0.3;
+                RayGrad { v_radiance: [x, 0.5, -x], v_transmittance: 0.7 - x, v_depth: x, v_normal: [0.2, x, 0.1] }
+            })
+            .collect();
+        let (mut va, mut vb) = (s.zeros_like(), s.zeros_like());
+        let (mut ra, mut rb) = (vec![Ray::default(); rays.len()], vec![Ray::default(); rays.len()]);
+        trace_backward(&tracer, &s, &rays, None, &g, None, &mut va, None, Some(&mut ra));
+        crate::trace::trace_backward_recorded(&tracer, &s, &rays, &g, &mut vb, Some(&mut rb), &record);
+        assert!(va == vb && ra == rb, "chunk {}: replayed gradients differ", settings.chunk);
+        assert!(va != s.zeros_like());
+    }
+}

@@ -26,7 +26,7 @@ use crate::shade::incident::{decode, decode_derivative, rotation_for, surfel_ray
 use crate::shade::pbr::{Detach, PbrGrads, PbrInputs, shade_surfels, shade_surfels_backward};
 use crate::shade::sampling::uniform_hemisphere;
 use crate::surfels::{SurfelGrads, Surfels};
-use crate::trace::{Ray, RayGrad, RayOutput, Tracer, trace, trace_backward};
+use crate::trace::{HitRecord, Ray, RayGrad, RayOutput, Tracer, trace_backward_recorded, trace_recorded};
 use rand::RngExt;
 
 /// sRGB encoding extended above 1 (no clamp; 0 below 0).
@@ -91,6 +91,8 @@ pub struct RcScratch {
     indirect: Vec<[f32; 3]>,
     grads: PbrGrads,
     ray_grads: Vec<RayGrad>,
+    /// The forward's hits, replayed by the backward (no second cast).
+    record: HitRecord,
     pub weight: f32,
     /// The tracer's radiance is already linear (`TraceSettings::linear_radiance`).
     linear: bool,
@@ -157,7 +159,7 @@ pub fn radiometric_consistency(
         );
     }
     sc.out.resize(b * r, RayOutput::default());
-    trace(tracer, surfels, &sc.rays, None, &mut sc.out, None);
+    trace_recorded(tracer, surfels, &sc.rays, &mut sc.out, &mut sc.record);
     sc.linear = tracer.settings.linear_radiance;
 
     // Two entries per surfel: 2k = ω_cam, 2k + 1 = ω_rand; both share the traced samples.
@@ -291,7 +293,7 @@ pub fn radiometric_consistency(
             };
         }
     }
-    trace_backward(tracer, surfels, &sc.rays, None, &sc.ray_grads, None, v_surfels, None, None);
+    trace_backward_recorded(tracer, surfels, &sc.rays, &sc.ray_grads, v_surfels, None, &sc.record);
     losses
 }
 

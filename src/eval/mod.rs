@@ -41,7 +41,7 @@ pub struct EvalArgs {
     pub relight_samples: usize,
 }
 
-/// The run's surfels: `point_cloud.ply`, else the checkpoint's parameters.
+/// The run's surfels: `point_cloud.ply`, else the newest nvs/init checkpoint's parameters.
 pub fn load_run_surfels(run: &Path) -> anyhow::Result<Surfels> {
     let ply = run.join("point_cloud.ply");
     if ply.is_file() {
@@ -49,12 +49,15 @@ pub fn load_run_surfels(run: &Path) -> anyhow::Result<Surfels> {
         s.sh_degree = s.sh_degree.max(0);
         return Ok(s);
     }
-    let ckpt = run.join("checkpoint.bin");
-    if ckpt.is_file() {
+    // An interrupted run has no PLY yet: its newest geometry checkpoint (nvs or init).
+    if let Some(ckpt) = crate::train::inverse::geometry_checkpoint(run) {
         let c = crate::train::checkpoint::Checkpoint::load(&ckpt)?;
         return Ok(c.get_surfels(&ckpt, "params")?);
     }
-    anyhow::bail!("{}: no point_cloud.ply or checkpoint.bin (is this a run folder?)", run.display())
+    anyhow::bail!(
+        "{}: no point_cloud.ply, checkpoint.bin or checkpoint_init.bin (is this a run folder?)",
+        run.display()
+    )
 }
 
 /// The run's settings (`RUN/config.toml`), or defaults when absent.

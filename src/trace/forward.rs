@@ -73,13 +73,7 @@ pub fn trace(
     out: &mut [RayOutput],
     out_features: Option<&mut [f32]>,
 ) {
-    assert_eq!(out.len(), rays.len(), "trace: out has {} entries for {} rays", out.len(), rays.len());
-    assert!(
-        !tracer.count_mismatch(surfels),
-        "trace: tracer built for {} surfels, scene has {}",
-        tracer.count,
-        surfels.len()
-    );
+    check_inputs(tracer, surfels, rays, out);
     let ncoef = sh::coeff_count(surfels.sh_degree);
     // Rays are traced in a coherent order (neighbouring origins and directions one after
     // another share the nodes and leaves they load) and the outputs put back in place.
@@ -138,13 +132,7 @@ const RECORD_CHUNK: usize = 64;
 /// [`trace`] with SH radiance as the payload, keeping every ray's hits in `record` for
 /// [`crate::trace::backward::trace_backward_recorded`]. Same outputs as `trace`.
 pub fn trace_recorded(tracer: &Tracer, surfels: &Surfels, rays: &[Ray], out: &mut [RayOutput], record: &mut HitRecord) {
-    assert_eq!(out.len(), rays.len(), "trace: out has {} entries for {} rays", out.len(), rays.len());
-    assert!(
-        !tracer.count_mismatch(surfels),
-        "trace: tracer built for {} surfels, scene has {}",
-        tracer.count,
-        surfels.len()
-    );
+    check_inputs(tracer, surfels, rays, out);
     let ncoef = sh::coeff_count(surfels.sh_degree);
     let n = rays.len();
     record.order = coherent_order(rays);
@@ -179,6 +167,17 @@ pub fn trace_recorded(tracer: &Tracer, surfels: &Surfels, rays: &[Ray], out: &mu
         record.t_final[k] = sorted[j].transmittance;
         out[k] = sorted[j];
     }
+}
+
+/// Programming errors the forward passes refuse: an output per ray, a tracer of this scene.
+fn check_inputs(tracer: &Tracer, surfels: &Surfels, rays: &[Ray], out: &[RayOutput]) {
+    assert_eq!(out.len(), rays.len(), "trace: out has {} entries for {} rays", out.len(), rays.len());
+    assert!(
+        !tracer.count_mismatch(surfels),
+        "trace: tracer built for {} surfels, scene has {}",
+        tracer.count,
+        surfels.len()
+    );
 }
 
 /// A tracing order in which consecutive rays are close in origin and direction: rays sorted by

@@ -131,4 +131,35 @@ fn init_stage_learns_the_pbr_image_and_resume_is_exact() {
         let b = std::fs::read(split.join(file)).unwrap();
         assert!(a == b, "{file}: resumed init run differs from the uninterrupted one");
     }
+
+    // The inverse stage from this checkpoint: `--fresh-materials false` keeps init's albedo and
+    // light (learning rates 0 hold them), the default starts them afresh.
+    let init_surfels = radiogs::io::ply::read_ply(&straight.join("point_cloud.ply")).unwrap();
+    let init_env = radiogs::envmap::EnvMap::load(&straight.join("envmap.exr")).unwrap();
+    for fresh in [false, true] {
+        let cfg = TrainConfig {
+            inverse_iters: 1,
+            fresh_materials: fresh,
+            lr_albedo: 0.0,
+            lr_roughness: 0.0,
+            lr_env: 0.0,
+            pbr_samples: 4,
+            rc_rays: 4,
+            rc_surfels: 8,
+            ..init_config(&straight)
+        };
+        radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+        let out = radiogs::io::ply::read_ply(&straight.join("point_cloud.ply")).unwrap();
+        let env = radiogs::envmap::EnvMap::load(&straight.join("envmap.exr")).unwrap();
+        // Orientation only flips surfels (materials unchanged) and appends twins.
+        assert!(out.len() >= init_surfels.len());
+        for i in 0..init_surfels.len() {
+            let want = if fresh { [cfg.albedo_init; 3] } else { init_surfels.albedo(i) };
+            let got = out.albedo(i);
+            assert!((0..3).all(|c| (got[c] - want[c]).abs() < 1e-4), "fresh {fresh}, surfel {i}: {got:?} vs {want:?}");
+        }
+        let kept =
+            env.texels.iter().zip(&init_env.texels).all(|(a, b)| (0..3).all(|c| (a[c] - b[c]).abs() < 1e-3 * b[c]));
+        assert_eq!(kept, !fresh, "the light is kept exactly when the materials are");
+    }
 }

@@ -215,6 +215,11 @@ pub struct TrainConfig {
     /// Learning rate of the env map's log radiance.
     #[arg(long, default_value_t = 0.01)]
     pub lr_env: f32,
+    /// Start the inverse stage from fresh materials and light (albedo_init, roughness_init,
+    /// env_init, as published); `false` keeps the albedo, roughness and light an init-stage
+    /// checkpoint learned (nvs checkpoints have none: fresh either way).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub fresh_materials: bool,
     /// Light first: for this many iterations at the start of the inverse stage albedo and
     /// roughness are frozen at their fresh values, so that the env (not per-surfel albedo)
     /// explains the shading that varies with the normal and the shadows (0 = off, as published).

@@ -106,12 +106,14 @@ impl InverseState {
         self.light.env()
     }
 
-    /// Fresh materials and light on the nvs result.
+    /// Fresh materials and light on the geometry stage's result, or with `kept_light` (log
+    /// texels of `cfg.env_height`) the surfels' own materials and that light.
     pub fn from_nvs(
         cfg: &TrainConfig,
         mut surfels: Surfels,
         cameras: &[Camera],
         extent: f32,
+        kept_light: Option<Vec<f32>>,
     ) -> crate::Result<InverseState> {
         let n0 = surfels.len();
         let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
@@ -122,12 +124,20 @@ impl InverseState {
             o.doubled,
             o.unseen
         );
-        surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
-        surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
+        if kept_light.is_none() {
+            surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
+            surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
+        }
         let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
         adam.lr.means = position_lr(cfg, extent);
         Ok(InverseState {
-            light: LearnedLight::fresh(cfg)?,
+            light: match kept_light {
+                // A new stage: the light's optimiser starts afresh.
+                Some(log) => {
+                    LearnedLight { adam: crate::optim::Adam::new(log.len(), cfg.lr_env), log, height: cfg.env_height }
+                }
+                None => LearnedLight::fresh(cfg)?,
+            },
             adam,
             surfels,
             cache: IncidentCache::default(),
@@ -653,7 +663,23 @@ pub fn run_until(
         let mut surfels = c.get_surfels(&geometry, "params")?;
         surfels.sh_degree = 3;
         let (_, extent) = dataset.camera_extent();
-        InverseState::from_nvs(cfg, surfels, &images.cameras, extent)?
+        let kept = if !cfg.fresh_materials && c.meta.get("stage").and_then(|s| s.as_str()) == Some("init") {
+            let light = LearnedLight::get(&geometry, &c, cfg)?;
+            if light.height != cfg.env_height {
+                anyhow::bail!(
+                    "{}: the init stage's light is {} texels high, env_height is {}; use the same env_height or \
+                     --fresh-materials true",
+                    geometry.display(),
+                    light.height,
+                    cfg.env_height
+                );
+            }
+            tracing::info!("inverse: keeping the init stage's albedo, roughness and light");
+            Some(light.log)
+        } else {
+            None
+        };
+        InverseState::from_nvs(cfg, surfels, &images.cameras, extent, kept)?
     };
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;

@@ -28,8 +28,8 @@ pub struct Footprint {
 /// A bilinear footprint stored compactly: top-left texel (x0, y0) and the fractions (tx, ty).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PackedFootprint {
-    pub x0: u16,
-    pub y0: u16,
+    pub x0: u32,
+    pub y0: u32,
     pub tx: f32,
     pub ty: f32,
 }
@@ -114,7 +114,7 @@ impl EnvMap {
         self.unpack(self.packed_footprint(d))
     }
 
-    /// [`footprint`](Self::footprint) in 12 bytes (top-left texel, bilinear fractions): what a
+    /// [`footprint`](Self::footprint) in 16 bytes (top-left texel, bilinear fractions): what a
     /// cache of fixed directions keeps so that every lookup of a changing map of this size
     /// skips the direction → pixel mapping (its atan2/acos).
     pub fn packed_footprint(&self, d: [f32; 3]) -> PackedFootprint {
@@ -124,8 +124,8 @@ impl EnvMap {
         let x0 = fx.floor();
         let y0 = fy.floor().min((self.height - 1) as f32);
         PackedFootprint {
-            x0: (x0 as i64).rem_euclid(self.width as i64) as u16,
-            y0: y0 as u16,
+            x0: (x0 as i64).rem_euclid(self.width as i64) as u32,
+            y0: y0 as u32,
             tx: fx - x0,
             ty: fy - y0,
         }

@@ -61,6 +61,9 @@ impl LearnedLight {
                 .ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
         };
         let h = meta_u64("env_height")? as usize;
+        if h < 8 || h % 8 != 0 {
+            return Err(Error::format(path, "env_height", format!("{h} is not a multiple of 8 (at least 8)")));
+        }
         let log = c.require(path, "env.log")?.to_vec();
         if log.len() != h * 2 * h * 3 {
             return Err(Error::format(path, "env.log", "size does not match env_height"));

@@ -60,11 +60,11 @@ fn main() -> anyhow::Result<()> {
         let samples = scene.cache.samples;
         let extent = radiogs::pbr_scene::scene_extent(&run);
         let cfg = radiogs::eval::load_run_config(&run)?;
-        let offset = cfg.ray_offset * extent;
+        let start = cfg.ray_start(extent);
         let mut dc_srgb = radiogs::shade::incident::IncidentCache::default();
-        dc_srgb.refresh_with(&tracer, s, samples, offset, cfg.seed, Some(&srgb));
+        dc_srgb.refresh_with(&tracer, s, samples, start, cfg.seed, Some(&srgb));
         dc_srgb.indirect.iter_mut().for_each(|c| *c = c.map(radiogs::shade::incident::decode));
-        scene.cache.refresh_with(&tracer, s, samples, offset, cfg.seed, Some(&lin));
+        scene.cache.refresh_with(&tracer, s, samples, start, cfg.seed, Some(&lin));
         println!(
             "mean indirect (G) per sample: SH sRGB composite decoded {before:.4}, DC sRGB composite decoded {:.4}, DC linear composite {:.4}",
             mean(&dc_srgb),

@@ -50,19 +50,19 @@ pub struct PbrImages {
 }
 
 impl PbrScene {
-    /// A scene from its parts; traces the incident cache (S samples, ray offset in scene units).
+    /// A scene from its parts; traces the incident cache (S samples, where rays start in scene units).
     pub fn new(
         surfels: Surfels,
         env: EnvMap,
         samples: usize,
-        offset: f32,
+        start: crate::shade::incident::RayStart,
         window: usize,
         sample_factor: usize,
         seed: u64,
     ) -> PbrScene {
         let tracer = Tracer::build(&surfels, &trace_settings());
         let mut cache = IncidentCache::default();
-        cache.refresh(&tracer, &surfels, samples, offset, seed);
+        cache.refresh(&tracer, &surfels, samples, start, seed);
         let mut mats = MaterialView::default();
         mats.update(&surfels);
         PbrScene { surfels, env, cache, mats, window, sample_factor, specular: Specular::Mc }
@@ -79,17 +79,17 @@ impl PbrScene {
         let surfels = crate::eval::load_run_surfels(run)?;
         let env = EnvMap::load(&env_path)?;
         let extent = scene_extent(run);
-        let offset = cfg.ray_offset * extent;
+        let start = cfg.ray_start(extent);
         if crate::relight::run_mode(run) == Some(crate::relight::RelightMode::Traced) {
             let mut mats = MaterialView::default();
             mats.update(&surfels);
-            let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, offset, cfg.seed)?;
+            let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, start, cfg.seed)?;
             let sample_factor = crate::train::inverse::sample_factor(&cfg);
             let specular = cfg.specular;
             return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window, sample_factor, specular }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, offset, cfg.window, factor, cfg.seed);
+        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
         scene.specular = cfg.specular;
         Ok(Some(scene))
     }

@@ -14,7 +14,7 @@
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::optim::{LearningRates, SurfelAdam};
-use crate::shade::incident::IncidentCache;
+use crate::shade::incident::{IncidentCache, RayStart};
 use crate::shade::pbr::{Detach, shade_surfels};
 use crate::shade::splitsum::SplitSum;
 use crate::surfels::Surfels;
@@ -74,7 +74,7 @@ pub struct FinetuneSettings {
     pub rc_surfels: usize,
     pub rc_rays: usize,
     pub samples: usize,
-    pub offset: f32,
+    pub start: RayStart,
     pub lr_sh: f32,
     /// Box filter of the env for the rendering equation's samples (as in training).
     pub sample_factor: usize,
@@ -94,7 +94,7 @@ pub fn traced_cache(
     mats: &MaterialView,
     env: &EnvMap,
     samples: usize,
-    offset: f32,
+    start: RayStart,
     seed: u64,
 ) -> crate::Result<IncidentCache> {
     let tracer = Tracer::build(surfels, &trace_settings());
@@ -109,7 +109,7 @@ pub fn traced_cache(
         })
         .collect();
     let mut cache = IncidentCache::default();
-    cache.refresh_with(&tracer, surfels, samples, offset, seed, Some(&feats));
+    cache.refresh_with(&tracer, surfels, samples, start, seed, Some(&feats));
     Ok(cache)
 }
 
@@ -137,7 +137,7 @@ pub fn finetune(
     let env_s = env.box_downsample(cfg.sample_factor);
     let env = &env_s;
     // Start: DC = the traced prediction along the normal (encoded like the SH images).
-    let cache = traced_cache(surfels, mats, split_env, cfg.samples, cfg.offset, cfg.seed)?;
+    let cache = traced_cache(surfels, mats, split_env, cfg.samples, cfg.start, cfg.seed)?;
     let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
     let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
     shade_surfels(&inp, env, &mut direct, &mut indirect)?;
@@ -161,7 +161,7 @@ pub fn finetune(
     let rc = RcSettings {
         surfels: cfg.rc_surfels,
         rays: cfg.rc_rays,
-        offset: cfg.offset,
+        start: cfg.start,
         weight: 1.0,
         detach: Detach { env: true, material: true, normal: true },
         detach_lhs: false,
@@ -234,7 +234,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     let mut surfels = crate::eval::load_run_surfels(run)?;
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;
     let extent = crate::pbr_scene::scene_extent(run);
-    let offset = cfg.ray_offset * extent;
+    let start = cfg.ray_start(extent);
     let cameras: Vec<Camera> = match crate::io::dataset::Dataset::open(&cfg.data) {
         Ok(d) => d.train.iter().map(|v| v.camera.clone()).collect(),
         Err(_) => Vec::new(),
@@ -254,7 +254,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 rc_surfels: args.rc_surfels,
                 rc_rays: args.rc_rays,
                 samples: cfg.pbr_samples,
-                offset,
+                start,
                 lr_sh: cfg.lr_sh,
                 sample_factor: crate::train::inverse::sample_factor(&cfg),
                 seed: args.seed,
@@ -301,7 +301,7 @@ mod tests {
         let env = EnvMap::constant(32, 16, l);
         let mut mats = MaterialView::default();
         mats.update(&s);
-        let cache = traced_cache(&s, &mats, &env, 64, 1e-3, 5).unwrap();
+        let cache = traced_cache(&s, &mats, &env, 64, RayStart::offset_only(1e-3), 5).unwrap();
         assert!(cache.visibility.iter().all(|&v| v == 1.0));
         assert!(cache.indirect.iter().all(|c| *c == [0.0; 3]));
         let shade = |a: f32| {

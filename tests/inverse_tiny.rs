@@ -39,7 +39,7 @@ fn plane() -> Surfels {
 fn make_dataset(dir: &Path) -> Surfels {
     let gt = plane();
     let env = EnvMap::constant(32, 16, [LIGHT; 3]);
-    let scene = PbrScene::new(gt.clone(), env, 64, 1e-3, 8, 1, 1);
+    let scene = PbrScene::new(gt.clone(), env, 64, radiogs::shade::incident::RayStart::offset_only(1e-3), 8, 1, 1);
     let angle = 0.9f32;
     let mut frames = Vec::new();
     for k in 0..4 {

@@ -36,6 +36,10 @@ pub struct TraceBenchArgs {
     /// Hits gathered per traversal (TraceSettings::chunk).
     #[arg(long, default_value_t = TraceSettings::default().chunk)]
     pub chunk: usize,
+    /// Rays skip surfels less than this (scene units) above their start surfel's tangent
+    /// plane, as the PBR stages' rays do (`ray_skip_margin` × extent); 0 = off.
+    #[arg(long, default_value_t = 0.0)]
+    pub skip_margin: f32,
 }
 
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq)]
@@ -119,19 +123,26 @@ pub fn scene(kind: &str, seed: u64) -> Surfels {
     s
 }
 
-/// 2048 surfels × 64 hemisphere directions from their centres.
-pub fn hemisphere_rays(s: &Surfels, seed: u64) -> Vec<Ray> {
+/// 2048 surfels × 64 hemisphere directions from their centres (skipping surfels less than
+/// `skip_margin` above the start surfel's tangent plane when it is > 0).
+pub fn hemisphere_rays(s: &Surfels, seed: u64, skip_margin: f32) -> Vec<Ray> {
     let mut rng = Pcg64::seed_from_u64(seed);
     let mut rays = Vec::with_capacity(2048 * 64);
     for _ in 0..2048 {
         let i = rng.random_range(0..s.len());
         let n = s.normal(i);
+        let m = s.means[i];
+        let skip_below = if skip_margin > 0.0 {
+            [n[0], n[1], n[2], n[0] * m[0] + n[1] * m[1] + n[2] * m[2] + skip_margin]
+        } else {
+            [0.0; 4]
+        };
         for _ in 0..64 {
             let mut d = random_unit(&mut rng);
             if d[0] * n[0] + d[1] * n[1] + d[2] * n[2] < 0.0 {
                 d = d.map(|x| -x);
             }
-            rays.push(Ray { origin: s.means[i], dir: d });
+            rays.push(Ray { origin: s.means[i], dir: d, skip_below });
         }
     }
     rays
@@ -171,6 +182,10 @@ fn time<F: FnMut()>(reps: usize, mut f: F) -> (f64, f64) {
 
 pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
     anyhow::ensure!((1..=crate::trace::MAX_CHUNK).contains(&args.chunk), "bench trace: --chunk must be 1..=64");
+    anyhow::ensure!(
+        args.skip_margin.is_finite() && args.skip_margin >= 0.0,
+        "bench trace: --skip-margin must be finite and ≥ 0"
+    );
     let settings = TraceSettings { chunk: args.chunk, ..TraceSettings::default() };
     let scenes: Vec<(&str, Surfels)> = match (&args.ply, args.scene) {
         (Some(path), _) => vec![("ply", crate::io::ply::read_ply(path)?)],
@@ -186,7 +201,7 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
         scenes[0].1.len()
     );
     for (kind, s) in scenes {
-        let rays = hemisphere_rays(&s, 8);
+        let rays = hemisphere_rays(&s, 8, args.skip_margin);
         let nr = rays.len() as f64;
         let build = time(5, || {
             std::hint::black_box(Tracer::build(&s, &settings));

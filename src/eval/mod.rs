@@ -157,6 +157,50 @@ pub struct PbrViewMetrics {
     pub roughness_mse: Option<f32>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub indirect_psnr: Option<f32>,
+    /// What a noise-free prediction of the GT indirect pass could score: see
+    /// [`noise_ceiling_psnr`].
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub indirect_noise_ceiling_psnr: Option<f32>,
+}
+
+/// The PSNR a noise-free prediction would score against a noisy (path-traced, not denoised)
+/// GT pass: −10·log10 σ̂², σ̂² the mean over masked pixels of (g − m)²·k/(k − 1), m the mean of
+/// the k ≥ 2 masked pixels of its 3×3 box (i.i.d. pixel noise leaves (k − 1)/k of its variance
+/// in that residual). Texture and edges inside the box also count as noise, so this is a lower
+/// estimate of the ceiling.
+pub fn noise_ceiling_psnr(g: &[[f32; 3]], mask: &[f32], w: usize, h: usize) -> f32 {
+    let (mut se, mut cnt) = (0.0f64, 0usize);
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            if mask[p] <= 0.5 {
+                continue;
+            }
+            let (mut mean, mut k) = ([0.0f64; 3], 0usize);
+            for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                    if mask[yy * w + xx] > 0.5 {
+                        k += 1;
+                        for c in 0..3 {
+                            mean[c] += g[yy * w + xx][c] as f64;
+                        }
+                    }
+                }
+            }
+            if k < 2 {
+                continue;
+            }
+            let kf = k as f64;
+            for c in 0..3 {
+                se += (g[p][c] as f64 - mean[c] / kf).powi(2) * kf / (kf - 1.0);
+            }
+            cnt += 3;
+        }
+    }
+    if cnt == 0 {
+        return f32::NAN;
+    }
+    (-10.0 * (se / cnt as f64).max(1e-12).log10()) as f32
 }
 
 /// The material / light metrics of a run with a recovered env (DESIGN §5).
@@ -228,9 +272,15 @@ fn eval_pbr(
             let g: Vec<[f32; 3]> = gt_i.data.chunks_exact(4).map(|p| enc([p[0], p[1], p[2]])).collect();
             let pred: Vec<[f32; 3]> = img.indirect.iter().map(|c| enc(*c)).collect();
             m.indirect_psnr = Some(psnr_masked(&pred, &g, &gt_mask));
+            m.indirect_noise_ceiling_psnr = Some(noise_ceiling_psnr(&g, &gt_mask, w, h));
             write_image(
                 &out_dir.join(format!("{}_indirect.png", cam.name)),
                 &to_image(&pred, Some(&img.alpha), cam.width, cam.height),
+            )?;
+            // The GT pass beside ours, encoded the same way, so the two can be compared by eye.
+            write_image(
+                &out_dir.join(format!("{}_indirect_gt.png", cam.name)),
+                &to_image(&g, Some(&gt_mask), cam.width, cam.height),
             )?;
         }
         let rough: Vec<[f32; 3]> = img.roughness.iter().map(|&r| [r; 3]).collect();
@@ -248,7 +298,11 @@ fn eval_pbr(
                    SSIM on both images masked onto black", scale),
         "roughness": "MSE over GT-masked pixels against roughness.png (linear)",
         "indirect": "ours = L_ind part of each surfel's rendering equation, rasterised; GT = indirect.exr RGB; \
-                     both clipped to [0,1] and sRGB-encoded; PSNR over GT-masked pixels",
+                     both clipped to [0,1] and sRGB-encoded; PSNR over GT-masked pixels; \
+                     GT and ours side by side as test_*_indirect_gt.png / test_*_indirect.png",
+        "indirect_noise_ceiling": "the PSNR a noise-free prediction could reach against the (noisy) GT pass: \
+                     -10 log10 of 9/8 x the mean squared residual of the sRGB GT against its own 3x3 box mean over \
+                     the GT mask (i.i.d. pixel-noise estimate; texture inside 3x3 counts as noise, so a lower estimate)",
         "albedo_scale": scale,
     });
     Ok((metrics, protocol))
@@ -283,7 +337,7 @@ fn eval_relight(
         *a = [0, 1, 2].map(|k| (a[k] * scale[k]).clamp(0.0, 1.0));
     }
     let cameras: Vec<crate::camera::Camera> = dataset.train.iter().map(|v| v.camera.clone()).collect();
-    let offset = cfg.ray_offset * extent;
+    let start = cfg.ray_start(extent);
     let white = [1.0f32; 3];
     let mut results = Vec::new();
     for name in dataset.relit_found() {
@@ -297,7 +351,7 @@ fn eval_relight(
             let mut psnrs = Vec::new();
             let mut ssims = Vec::new();
             if mode == "traced" {
-                let cache = traced_cache(&surfels, &mats, &env, args.relight_samples, offset, cfg.seed)?;
+                let cache = traced_cache(&surfels, &mats, &env, args.relight_samples, start, cfg.seed)?;
                 traced_scene = Some(crate::pbr_scene::PbrScene {
                     surfels: surfels.clone(),
                     env: env.clone(),
@@ -313,7 +367,7 @@ fn eval_relight(
                     rc_surfels: 2048,
                     rc_rays: 16,
                     samples: args.relight_samples,
-                    offset,
+                    start,
                     lr_sh: cfg.lr_sh,
                     sample_factor: crate::train::inverse::sample_factor(cfg),
                     seed: cfg.seed,
@@ -501,6 +555,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         mean.insert("albedo_ssim".into(), serde_json::json!(pmean(&|m| m.albedo_ssim)));
         mean.insert("roughness_mse".into(), serde_json::json!(pmean(&|m| m.roughness_mse)));
         mean.insert("indirect_psnr".into(), serde_json::json!(pmean(&|m| m.indirect_psnr)));
+        mean.insert("indirect_noise_ceiling_psnr".into(), serde_json::json!(pmean(&|m| m.indirect_noise_ceiling_psnr)));
         let mut extra = serde_json::Map::new();
         extra.insert("pbr_protocol".into(), protocol.clone());
         extra.insert("pbr_per_view".into(), serde_json::to_value(pm)?);
@@ -538,4 +593,43 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     println!("{}", serde_json::to_string_pretty(&summary["mean"])?);
     eprintln!("metrics → {}", path.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// A flat grey pass plus i.i.d. Gaussian noise σ: the estimate is −10·log10 σ²; without
+    /// noise it is far higher; unmasked pixels do not count.
+    #[test]
+    fn noise_ceiling_recovers_the_noise_level() {
+        let (w, h) = (64, 48);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let sigma = 0.05f64;
+        let mut gauss = || {
+            // Box–Muller.
+            let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let noisy: Vec<[f32; 3]> = (0..w * h).map(|_| [0; 3].map(|_| (0.4 + sigma * gauss()) as f32)).collect();
+        let mask: Vec<f32> = (0..w * h).map(|p| if p % w < w - 8 { 1.0 } else { 0.0 }).collect();
+        let est = noise_ceiling_psnr(&noisy, &mask, w, h);
+        let truth = (-10.0 * (sigma * sigma).log10()) as f32;
+        assert!((est - truth).abs() < 0.3, "estimated {est} dB, noise {truth} dB");
+        let mut flat = vec![[0.4f32; 3]; w * h];
+        assert!(noise_ceiling_psnr(&flat, &mask, w, h) > 60.0);
+        // Anything where the mask is 0 does not count, not even as a neighbour.
+        for (p, c) in flat.iter_mut().enumerate() {
+            if mask[p] == 0.0 {
+                *c = [1.0, 0.0, 1.0];
+            }
+        }
+        assert!(noise_ceiling_psnr(&flat, &mask, w, h) > 60.0);
+        // A step edge inside the mask counts (the estimate is a lower bound of the ceiling).
+        let step: Vec<[f32; 3]> = (0..w * h).map(|p| if p % w < w / 2 { [0.2; 3] } else { [0.6; 3] }).collect();
+        let with_edge = noise_ceiling_psnr(&step, &mask, w, h);
+        assert!(with_edge > 10.0 && with_edge < 60.0, "{with_edge}");
+        assert!(noise_ceiling_psnr(&flat, &vec![0.0; w * h], w, h).is_nan());
+    }
 }

@@ -10,7 +10,11 @@
 //! where a ray's hits differ in colour, and it keeps the tracer's payload unchanged.)
 //!
 //! Rays leave from μ + offset·n: 2D surfels of a flat patch are nearly coplanar, and rays
-//! from the exact centre at the 10° floor would hit the neighbours' disks at tiny t.
+//! from the exact centre at the 10° floor would hit the neighbours' disks at tiny t. They
+//! also skip surfels whose centre lies less than a margin above the tangent plane at μ: a
+//! trained surface is several translucent, tilted layers deep, and rays leaving it hit its
+//! own layers (a sphere's top saw ~3 % of its hemisphere blocked by itself, a flat floor ~8 %),
+//! which showed up as false indirect light and shadow.
 
 use super::pbr::{CachedFootprints, PbrInputs};
 use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
@@ -64,12 +68,28 @@ pub fn rotation_for(seed: u64, i: usize) -> f64 {
     (x >> 11) as f64 / (1u64 << 53) as f64 * std::f64::consts::TAU
 }
 
+/// Where a surfel's incident rays start and which hits they skip (scene units): origin
+/// μ + offset·n; with `skip_margin` m, hits on surfels whose centre lies less than m above the
+/// tangent plane at μ are ignored ([`Ray::skip_below`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RayStart {
+    pub offset: f32,
+    pub skip_margin: Option<f32>,
+}
+
+impl RayStart {
+    /// An origin offset and no skipping.
+    pub fn offset_only(offset: f32) -> RayStart {
+        RayStart { offset, skip_margin: None }
+    }
+}
+
 /// Writes the S rays of surfel `i` (origin μ + offset·n, Fibonacci directions rotated by
-/// `rotation`) and returns the per-sample solid angle.
+/// `rotation`, the skip plane of `start`) and returns the per-sample solid angle.
 pub fn surfel_rays(
     surfels: &Surfels,
     i: usize,
-    offset: f32,
+    start: RayStart,
     rotation: f64,
     dirs: &mut [[f32; 3]],
     rays: &mut [Ray],
@@ -77,9 +97,14 @@ pub fn surfel_rays(
     let n = surfels.normal(i);
     let m = surfels.means[i];
     let w = fibonacci_hemisphere(n, rotation, MIN_ELEVATION_DEG, ElevationFloor::Spread, dirs);
+    let offset = start.offset;
     let origin = [m[0] + offset * n[0], m[1] + offset * n[1], m[2] + offset * n[2]];
+    let skip_below = match start.skip_margin {
+        Some(margin) => [n[0], n[1], n[2], n[0] * m[0] + n[1] * m[1] + n[2] * m[2] + margin],
+        None => [0.0; 4],
+    };
     for (r, d) in rays.iter_mut().zip(dirs.iter()) {
-        *r = Ray { origin, dir: *d };
+        *r = Ray { origin, dir: *d, skip_below };
     }
     w as f32
 }
@@ -94,8 +119,8 @@ impl IncidentCache {
 
     /// Trace every surfel's S rays (no gradients) and replace the whole cache; indirect light
     /// is the hit surfels' SH radiance (decoded to linear).
-    pub fn refresh(&mut self, tracer: &Tracer, surfels: &Surfels, samples: usize, offset: f32, seed: u64) {
-        self.refresh_with(tracer, surfels, samples, offset, seed, None);
+    pub fn refresh(&mut self, tracer: &Tracer, surfels: &Surfels, samples: usize, start: RayStart, seed: u64) {
+        self.refresh_with(tracer, surfels, samples, start, seed, None);
     }
 
     /// As [`refresh`](Self::refresh); with `radiance` (N × 3, linear), the indirect light is
@@ -105,7 +130,7 @@ impl IncidentCache {
         tracer: &Tracer,
         surfels: &Surfels,
         samples: usize,
-        offset: f32,
+        start: RayStart,
         seed: u64,
         radiance: Option<&[f32]>,
     ) {
@@ -120,17 +145,17 @@ impl IncidentCache {
             return;
         }
         let all: Vec<u32> = (0..n as u32).collect();
-        self.trace_rows(tracer, surfels, &all, offset, seed, radiance);
+        self.trace_rows(tracer, surfels, &all, start, seed, radiance);
     }
 
     /// Re-trace only the listed surfels' rows (no gradients), with the directions a full
     /// [`refresh`](Self::refresh) of `seed` would give them; the cache keeps its size, and
     /// the rows' env footprints follow when they are kept.
-    pub fn refresh_rows(&mut self, tracer: &Tracer, surfels: &Surfels, rows: &[u32], offset: f32, seed: u64) {
+    pub fn refresh_rows(&mut self, tracer: &Tracer, surfels: &Surfels, rows: &[u32], start: RayStart, seed: u64) {
         if self.len() != surfels.len() || self.samples == 0 || rows.is_empty() {
             return;
         }
-        self.trace_rows(tracer, surfels, rows, offset, seed, None);
+        self.trace_rows(tracer, surfels, rows, start, seed, None);
         if self.footprints.len() == self.dirs.len() {
             let grid = footprint_grid(self.footprint_size);
             let s = self.samples;
@@ -148,7 +173,7 @@ impl IncidentCache {
         tracer: &Tracer,
         surfels: &Surfels,
         rows: &[u32],
-        offset: f32,
+        start: RayStart,
         seed: u64,
         radiance: Option<&[f32]>,
     ) {
@@ -160,7 +185,7 @@ impl IncidentCache {
             .par_chunks_mut(s)
             .zip(rays.par_chunks_mut(s))
             .zip(rows.par_iter())
-            .map(|((d, r), &i)| surfel_rays(surfels, i as usize, offset, rotation_for(seed, i as usize), d, r))
+            .map(|((d, r), &i)| surfel_rays(surfels, i as usize, start, rotation_for(seed, i as usize), d, r))
             .collect();
         self.weight = weights[0];
         let mut out = vec![RayOutput::default(); m * s];
@@ -297,6 +322,78 @@ mod tests {
         }
     }
 
+    /// A bumpy floor (a layer of tilted, translucent surfels 2 cm thick) under an opaque disk:
+    /// without the skip plane the floor's rays hit the floor's own surfels; with it every ray
+    /// that misses the disk sees the sky, and the rays towards the disk are still blocked.
+    #[test]
+    fn skip_plane_removes_self_hits_of_a_bumpy_floor() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
+        let mut s = Surfels::default();
+        for _ in 0..900 {
+            let mean =
+                [rng.random_range(-0.6..0.6f32), rng.random_range(-0.6..0.6f32), rng.random_range(-0.01..0.01f32)];
+            let tilt = [rng.random_range(-0.35..0.35f32), rng.random_range(-0.35..0.35f32), 1.0];
+            let sc = [rng.random_range(0.04..0.08f32), rng.random_range(0.04..0.08f32)];
+            s.push(mean, sc, crate::surfels::quat_with_normal(tilt), 0.5, [0.5; 3], [0.3; 3], 0.5);
+        }
+        // The occluder: 0.4 above the floor's centre, facing down.
+        let (disk_z, disk_sigma) = (0.4f32, 0.12f32);
+        s.push(
+            [0.0, 0.0, disk_z],
+            [disk_sigma; 2],
+            crate::surfels::quat_with_normal([0.0, 0.0, -1.0]),
+            0.99,
+            [0.5; 3],
+            [0.3; 3],
+            0.5,
+        );
+        // Rays start from flat floor surfels near the centre (the skip plane is their tangent
+        // plane; a tilted one's would rise above the floor's far side and rightly see it).
+        let first = s.len();
+        for k in 0..6 {
+            let mean = [0.05 * k as f32 - 0.12, 0.03 * k as f32 - 0.08, rng.random_range(-0.01..0.01f32)];
+            s.push(mean, [0.06; 2], crate::surfels::quat_with_normal([0.0, 0.0, 1.0]), 0.5, [0.5; 3], [0.3; 3], 0.5);
+        }
+        let tracer = Tracer::build(&s, &TraceSettings::default());
+        let rows: Vec<u32> = (first as u32..s.len() as u32).collect();
+        assert!(rows.len() >= 3, "too few central floor surfels: {}", rows.len());
+        let mut plain = IncidentCache::default();
+        plain.refresh(&tracer, &s, 64, RayStart::offset_only(2e-3), 5);
+        let mut skipping = IncidentCache::default();
+        skipping.refresh(&tracer, &s, 64, RayStart { offset: 2e-3, skip_margin: Some(0.05) }, 5);
+        let (mut self_hits, mut to_disk, mut free) = (0, 0, 0);
+        for &i in &rows {
+            let i = i as usize;
+            let m = s.means[i];
+            let o = [m[0], m[1], m[2] + 2e-3 * s.normal(i)[2]];
+            for k in i * 64..(i + 1) * 64 {
+                let d = plain.dirs[k];
+                assert_eq!(d, skipping.dirs[k]);
+                // Where the ray crosses the disk's plane, in units of σ.
+                let t = (disk_z - o[2]) / d[2];
+                let r = ((o[0] + t * d[0]).powi(2) + (o[1] + t * d[1]).powi(2)).sqrt() / disk_sigma;
+                if r < 0.8 {
+                    to_disk += 1;
+                    assert!(
+                        skipping.visibility[k] < 0.5,
+                        "a ray towards the disk passed: T {}",
+                        skipping.visibility[k]
+                    );
+                } else if r > 4.0 {
+                    free += 1;
+                    assert_eq!(skipping.visibility[k], 1.0, "a ray missing the disk was blocked");
+                    self_hits += (plain.visibility[k] < 0.99) as usize;
+                }
+            }
+        }
+        assert!(to_disk >= 5 && free >= 100, "rays towards the disk {to_disk}, free {free}");
+        assert!(
+            self_hits * 10 >= free,
+            "the bumpy floor should block its own rays without the skip: {self_hits}/{free}"
+        );
+    }
+
     /// Re-tracing a subset of rows gives those rows exactly what a full refresh with the same
     /// seed gives them and leaves the other rows alone; their footprints follow.
     #[test]
@@ -304,14 +401,14 @@ mod tests {
         let s = Surfels::random_in_box(60, [-1.0; 3], [1.0; 3], 6);
         let tracer = Tracer::build(&s, &TraceSettings::default());
         let mut full = IncidentCache::default();
-        full.refresh(&tracer, &s, 8, 1e-3, 21);
+        full.refresh(&tracer, &s, 8, RayStart::offset_only(1e-3), 21);
         let mut partial = IncidentCache::default();
-        partial.refresh(&tracer, &s, 8, 1e-3, 4);
+        partial.refresh(&tracer, &s, 8, RayStart::offset_only(1e-3), 4);
         let env = EnvMap::constant(16, 8, [1.0; 3]);
         partial.prepare_footprints(&env);
         let before = partial.clone();
         let rows = [2u32, 17, 18, 59];
-        partial.refresh_rows(&tracer, &s, &rows, 1e-3, 21);
+        partial.refresh_rows(&tracer, &s, &rows, RayStart::offset_only(1e-3), 21);
         assert!(partial.visibility.iter().any(|&v| v < 1.0), "the test needs occlusion");
         for i in 0..s.len() {
             let r = i * 8..(i + 1) * 8;
@@ -334,7 +431,7 @@ mod tests {
         let s = Surfels::random_in_box(40, [-1.0; 3], [1.0; 3], 4);
         let tracer = Tracer::build(&s, &TraceSettings::default());
         let mut cache = IncidentCache::default();
-        cache.refresh(&tracer, &s, 8, 1e-3, 9);
+        cache.refresh(&tracer, &s, 8, RayStart::offset_only(1e-3), 9);
         let mut rg = rand_pcg::Pcg64::seed_from_u64(5);
         let mut env = EnvMap::constant(32, 16, [0.0; 3]);
         env.texels.iter_mut().for_each(|t| *t = [rg.random(), rg.random(), rg.random()]);
@@ -391,7 +488,7 @@ mod tests {
         assert!(s.normal(1)[2] < -0.99);
         let tracer = Tracer::build(&s, &TraceSettings::default());
         let mut cache = IncidentCache::default();
-        cache.refresh(&tracer, &s, 16, 1e-3, 7);
+        cache.refresh(&tracer, &s, 16, RayStart::offset_only(1e-3), 7);
         for k in 0..16 {
             assert!(cache.visibility[k] < 0.05, "floor sample {k}: V = {}", cache.visibility[k]);
             // The lid's SH colour is 0.5 (sRGB) → linear ≈ 0.214, times its α ≈ 0.99.

@@ -273,7 +273,7 @@ impl Ctx<'_> {
     /// Backward of one ray; returns ∂L/∂(origin, dir).
     fn ray_backward(&self, ray_index: usize, ray: &Ray, g: &RayGrad, buf: &mut GradBuf) -> Ray {
         let (tracer, surfels) = (self.tracer, self.surfels);
-        let r = PreparedRay::new(ray.origin, ray.dir);
+        let r = PreparedRay::from_ray(ray);
         let (dh, dlen) = unit(ray.dir);
         let basis = sh::basis(dh);
         let two_sided = tracer.settings.two_sided;
@@ -416,6 +416,6 @@ impl Ctx<'_> {
         }
         buf.hits = cast;
         buf.feat_scratch = sfeat;
-        Ray { origin: v_o, dir: v_d }
+        Ray { origin: v_o, dir: v_d, ..Default::default() }
     }
 }

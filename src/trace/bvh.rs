@@ -611,13 +611,26 @@ pub(crate) struct PreparedRay {
     pub inv_d: [f32; 3],
     /// d / |d| (zero for a zero direction), for the normal-cone test.
     pub d_unit: [f32; 3],
+    /// The ray's [`Ray::skip_below`](crate::trace::Ray::skip_below) plane, and whether it is set.
+    pub skip: [f32; 4],
+    pub skips: bool,
 }
 
 impl PreparedRay {
     pub fn new(o: [f32; 3], d: [f32; 3]) -> Self {
         let len = dot(d, d).sqrt();
         let d_unit = if len > 0.0 { d.map(|x| x / len) } else { [0.0; 3] };
-        PreparedRay { o, d, inv_d: d.map(|x| 1.0 / x), d_unit }
+        PreparedRay { o, d, inv_d: d.map(|x| 1.0 / x), d_unit, skip: [0.0; 4], skips: false }
+    }
+
+    pub fn from_ray(ray: &crate::trace::Ray) -> Self {
+        let mut r = Self::new(ray.origin, ray.dir);
+        let p = ray.skip_below;
+        r.skips = p[0] != 0.0 || p[1] != 0.0 || p[2] != 0.0;
+        if r.skips {
+            r.skip = p;
+        }
+        r
     }
 }
 
@@ -697,6 +710,16 @@ impl Tracer {
                 t_far = t0.fast_max(t1).fast_min(t_far);
             }
             let mut hit = t_near.simd_le(t_far);
+            if r.skips {
+                // Every centre in a child lies in its box: cull the box when its highest point
+                // along the plane normal is below the skip plane.
+                let mut top = f32x8::ZERO;
+                for a in 0..3 {
+                    let n = f32x8::splat(r.skip[a]);
+                    top += (f32x8::from(nd.bmin[a]) * n).fast_max(f32x8::from(nd.bmax[a]) * n);
+                }
+                hit &= !top.simd_lt(f32x8::splat(r.skip[3]));
+            }
             if !two_sided {
                 let facing_away =
                     f32x8::from(nd.cone[0]) * du[0] + f32x8::from(nd.cone[1]) * du[1] + f32x8::from(nd.cone[2]) * du[2];
@@ -769,6 +792,12 @@ impl Tracer {
         let rho = u * u + vv * vv;
         let inside = rho.simd_le(v(&p.rho_max) * f32x8::splat(1.0 + 1e-5));
         let mut mask = (facing & in_range & inside).to_bitmask();
+        if r.skips {
+            let height = v(&p.mean[0]) * f32x8::splat(r.skip[0])
+                + v(&p.mean[1]) * f32x8::splat(r.skip[1])
+                + v(&p.mean[2]) * f32x8::splat(r.skip[2]);
+            mask &= !height.simd_lt(f32x8::splat(r.skip[3])).to_bitmask();
+        }
         if mask == 0 {
             return;
         }

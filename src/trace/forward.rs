@@ -237,7 +237,7 @@ fn trace_one(
     mut feat: Option<(&[f32], usize, &mut [f32])>,
     mut record: Option<&mut Vec<(Hit, f32)>>,
 ) -> RayOutput {
-    let r = PreparedRay::new(ray.origin, ray.dir);
+    let r = PreparedRay::from_ray(ray);
     let basis = sh::basis(unit(ray.dir).0);
     let mut o = RayOutput::default();
     let two_sided = tracer.settings.two_sided;
@@ -283,7 +283,7 @@ pub fn render_camera_traced(surfels: &Surfels, camera: &Camera, settings: &Trace
         .into_par_iter()
         .map(|k| {
             let (o, d) = camera.ray((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
-            Ray { origin: o.to_array(), dir: d.to_array() }
+            Ray { origin: o.to_array(), dir: d.to_array(), ..Default::default() }
         })
         .collect();
     let mut out = vec![RayOutput::default(); rays.len()];

@@ -77,6 +77,11 @@ impl Default for TraceSettings {
 pub struct Ray {
     pub origin: [f32; 3],
     pub dir: [f32; 3],
+    /// A plane (n, c): hits on surfels whose centre μ has n·μ < c are ignored. Rays leaving a
+    /// surfel pass the surfel's tangent plane raised by a margin, so they skip the surface
+    /// they start from — its own translucent layers and the tilted surfels in them — while
+    /// anything rising above the plane still occludes. Zero (the default) ignores nothing.
+    pub skip_below: [f32; 4],
 }
 
 /// Per-surfel feature channels composited instead of SH radiance: `data` is N × `channels`.

@@ -65,7 +65,10 @@ pub fn all_hits(s: &Surfels, ray: &Ray, settings: &TraceSettings) -> Vec<(RefHit
         let raw = op * (-0.5 * rho).exp();
         let alpha = raw.min(ALPHA_MAX as f64);
         let facing = b < 0.0 || (settings.two_sided && b > 0.0);
+        let sk = ray.skip_below.map(|x| x as f64);
+        let skipped = dot([sk[0], sk[1], sk[2]], mu) < sk[3];
         let valid = facing
+            && !skipped
             && t.is_finite()
             && t > settings.t_min as f64
             && t <= settings.t_max as f64

@@ -36,7 +36,7 @@ fn random_rays(n: usize, seed: u64, s: &Surfels) -> Vec<Ray> {
             };
             let d: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0f32));
             let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
-            Ray { origin, dir: d.map(|x| x / l) }
+            Ray { origin, dir: d.map(|x| x / l), ..Default::default() }
         })
         .collect()
 }
@@ -110,7 +110,7 @@ fn equal_depths_are_composited_in_index_order() {
         s.push([0.0, 0.0, 2.0], [1.0, 1.0], q, 0.3 + 0.2 * k as f32, c, [0.3; 3], 0.5);
     }
     // Put the brightest last in index order and check the traced order is by index.
-    let rays = vec![Ray { origin: [0.1, -0.05, 0.0], dir: [0.0, 0.0, 1.0] }];
+    let rays = vec![Ray { origin: [0.1, -0.05, 0.0], dir: [0.0, 0.0, 1.0], ..Default::default() }];
     for chunk in [1, 2, 16] {
         let settings = TraceSettings { chunk, min_transmittance: 0.0, ..Default::default() };
         let tracer = Tracer::build(&s, &settings);
@@ -142,7 +142,7 @@ fn empty_scene_and_missing_rays() {
     // A ray pointing away from every surfel hits nothing and gets zero gradients.
     let s = random_scene(50, 3, 3);
     let tracer = Tracer::build(&s, &settings);
-    let rays = vec![Ray { origin: [5.0, 5.0, 5.0], dir: [0.0, 0.0, 1.0] }];
+    let rays = vec![Ray { origin: [5.0, 5.0, 5.0], dir: [0.0, 0.0, 1.0], ..Default::default() }];
     let mut out = [RayOutput::default()];
     trace(&tracer, &s, &rays, None, &mut out, None);
     assert_eq!(out[0].transmittance, 1.0);
@@ -162,7 +162,7 @@ fn rays_leaving_a_surfel_skip_it() {
     let rays: Vec<Ray> = (0..s.len())
         .map(|i| {
             let n = s.normal(i);
-            Ray { origin: s.means[i], dir: n }
+            Ray { origin: s.means[i], dir: n, ..Default::default() }
         })
         .collect();
     let mut out = vec![RayOutput::default(); rays.len()];
@@ -265,12 +265,12 @@ fn leaving_rays(s: &Surfels, n: usize, seed: u64) -> Vec<Ray> {
                 let o = d.map(|x| 2.5 * x);
                 let aim: [f32; 3] = std::array::from_fn(|a| rng.random_range(-0.3..0.3f32) - o[a]);
                 let l = (aim[0] * aim[0] + aim[1] * aim[1] + aim[2] * aim[2]).sqrt();
-                return Ray { origin: o, dir: aim.map(|x| x / l) };
+                return Ray { origin: o, dir: aim.map(|x| x / l), ..Default::default() };
             }
             let i = rng.random_range(0..s.len());
             let nrm = s.normal(i);
             let flip = if d[0] * nrm[0] + d[1] * nrm[1] + d[2] * nrm[2] < 0.0 { -1.0 } else { 1.0 };
-            Ray { origin: s.means[i], dir: d.map(|x| flip * x) }
+            Ray { origin: s.means[i], dir: d.map(|x| flip * x), ..Default::default() }
         })
         .collect()
 }
@@ -433,7 +433,7 @@ fn fd_scene(seed: u64, two_sided: bool, grazing: bool) -> (Surfels, Vec<Ray>, Tr
                 let origin = [rng.random_range(-0.1..0.1f32), rng.random_range(-0.1..0.1f32), 0.0];
                 let d = [rng.random_range(-0.15..0.15f32), rng.random_range(-0.15..0.15f32), 1.0];
                 let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                Ray { origin, dir: d.map(|x| x / l) }
+                Ray { origin, dir: d.map(|x| x / l), ..Default::default() }
             })
             .collect();
         let good = rays.iter().all(|ray| {
@@ -493,11 +493,15 @@ fn check(name: &str, analytic: f32, fd: f64) {
 }
 
 fn fd_check(seed: u64, two_sided: bool, grazing: bool, channels: usize) {
-    fd_check_with(seed, two_sided, grazing, channels, false);
+    fd_check_with(seed, two_sided, grazing, channels, false, None);
 }
 
-fn fd_check_with(seed: u64, two_sided: bool, grazing: bool, channels: usize, linear: bool) {
-    let (s, rays, mut settings) = fd_scene(seed, two_sided, grazing);
+/// `skip_z`: every ray skips the surfels whose centre lies below that height.
+fn fd_check_with(seed: u64, two_sided: bool, grazing: bool, channels: usize, linear: bool, skip_z: Option<f32>) {
+    let (s, mut rays, mut settings) = fd_scene(seed, two_sided, grazing);
+    if let Some(z) = skip_z {
+        rays.iter_mut().for_each(|r| r.skip_below = [0.0, 0.0, 1.0, z]);
+    }
     settings.linear_radiance = linear;
     let mut rng = Pcg64::seed_from_u64(seed + 77);
     let feats: Vec<f32> = (0..s.len() * channels).map(|_| rng.random_range(-1.0..1.0f32)).collect();
@@ -557,6 +561,11 @@ fn fd_check_with(seed: u64, two_sided: bool, grazing: bool, channels: usize, lin
         nonzero += (v.opacity_logits[i] != 0.0) as usize;
     }
     assert!(nonzero >= 2, "too few surfels were hit");
+    if let Some(z) = skip_z {
+        for i in (0..s.len()).filter(|&i| s.means[i][2] < z) {
+            assert_eq!(v.opacity_logits[i], 0.0, "surfel {i} below the skip plane got a gradient");
+        }
+    }
     for j in 0..feats.len() {
         let (mut a, mut b) = (feats.clone(), feats.clone());
         a[j] += h;
@@ -592,6 +601,41 @@ fn gradients_match_finite_differences() {
     fd_check(2, false, false, 0);
 }
 
+/// Rays that skip the first surfel (centres at z = 1, 1.5, …; the plane at z = 1.25): the
+/// others' gradients still match, the skipped one gets none.
+#[test]
+fn gradients_match_finite_differences_with_a_skip_plane() {
+    fd_check_with(5, false, false, 0, true, Some(1.25));
+    fd_check_with(6, true, false, 2, false, Some(1.25));
+}
+
+/// Skip planes of rays leaving a surfel (its tangent plane raised by a margin, some below it)
+/// against brute force, and they do change what the rays hit.
+#[test]
+fn skip_planes_match_brute_force() {
+    let s = shell_scene(900, 51);
+    let mut rng = Pcg64::seed_from_u64(52);
+    let mut rays = leaving_rays(&s, 800, 53);
+    let plain = rays.clone();
+    for r in rays.iter_mut() {
+        if let Some(i) = s.means.iter().position(|m| *m == r.origin) {
+            let n = s.normal(i);
+            let c = n[0] * r.origin[0] + n[1] * r.origin[1] + n[2] * r.origin[2] + rng.random_range(-0.05..0.4f32);
+            r.skip_below = [n[0], n[1], n[2], c];
+        }
+    }
+    let settings = TraceSettings::default();
+    let changed = rays
+        .iter()
+        .zip(&plain)
+        .filter(|(a, b)| trace_ref(&s, a, &settings, None).hits != trace_ref(&s, b, &settings, None).hits)
+        .count();
+    assert!(changed * 20 > rays.len(), "the skip planes changed only {changed} of {} rays", rays.len());
+    compare_with_reference(&s, &rays, &settings, None);
+    compare_with_reference(&s, &rays, &TraceSettings { two_sided: true, ..Default::default() }, None);
+    compare_with_reference(&s, &rays, &TraceSettings { chunk: 2, min_transmittance: 1e-4, ..Default::default() }, None);
+}
+
 #[test]
 fn gradients_match_finite_differences_two_sided_and_grazing() {
     fd_check(3, true, false, 0);
@@ -600,8 +644,8 @@ fn gradients_match_finite_differences_two_sided_and_grazing() {
 
 #[test]
 fn gradients_match_finite_differences_with_linear_radiance() {
-    fd_check_with(7, false, false, 0, true);
-    fd_check_with(8, true, true, 0, true);
+    fd_check_with(7, false, false, 0, true, None);
+    fd_check_with(8, true, true, 0, true, None);
 }
 
 #[test]

@@ -22,7 +22,7 @@
 use super::material::{MaterialGrads, MaterialView, view_dir, view_dir_backward};
 use crate::envmap::EnvMap;
 use crate::sh;
-use crate::shade::incident::{decode, decode_derivative, rotation_for, surfel_rays};
+use crate::shade::incident::{RayStart, decode, decode_derivative, rotation_for, surfel_rays};
 use crate::shade::pbr::{Detach, PbrGrads, PbrInputs, shade_surfels, shade_surfels_backward};
 use crate::shade::sampling::uniform_hemisphere;
 use crate::surfels::{SurfelGrads, Surfels};
@@ -60,8 +60,8 @@ pub struct RcSettings {
     pub surfels: usize,
     /// R: traced rays per surfel.
     pub rays: usize,
-    /// Ray origin offset along the normal (scene units).
-    pub offset: f32,
+    /// Where the traced rays start and what they skip (scene units).
+    pub start: RayStart,
     /// λ_rc.
     pub weight: f32,
     /// Switches on the right (PBR) side.
@@ -152,7 +152,7 @@ pub fn radiometric_consistency(
         sc.weight = surfel_rays(
             surfels,
             i as usize,
-            cfg.offset,
+            cfg.start,
             rotation_for(seed, k),
             &mut sc.dirs[k * r..(k + 1) * r],
             &mut sc.rays[k * r..(k + 1) * r],
@@ -396,7 +396,7 @@ mod tests {
         let cfg = RcSettings {
             surfels: 8,
             rays: 12,
-            offset: 1e-3,
+            start: RayStart::offset_only(1e-3),
             weight: 0.7,
             detach: Detach::default(),
             detach_lhs: false,
@@ -488,7 +488,7 @@ mod tests {
         let base = RcSettings {
             surfels: 8,
             rays: 8,
-            offset: 1e-3,
+            start: RayStart::offset_only(1e-3),
             weight: 1.0,
             detach: Detach::default(),
             detach_lhs: false,

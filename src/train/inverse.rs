@@ -399,7 +399,7 @@ fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
     RcSettings {
         surfels: cfg.rc_surfels,
         rays: cfg.rc_rays,
-        offset: cfg.ray_offset * extent,
+        start: cfg.ray_start(extent),
         weight: cfg.lambda_rc,
         detach: Detach { env: cfg.detach_env, material: cfg.detach_material, normal: cfg.detach_normal },
         detach_lhs: cfg.detach_lhs,
@@ -684,11 +684,11 @@ pub fn run_until(
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
     let mut tracer = Tracer::build(&state.surfels, &trace_settings());
-    let offset = cfg.ray_offset * state.extent;
+    let start = cfg.ray_start(state.extent);
     let mut times = InverseTimes::default();
     if state.cache.len() != state.surfels.len() || state.cache.samples != cfg.pbr_samples {
         let t = Instant::now();
-        state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, offset, cfg.seed ^ state.iteration as u64);
+        state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, start, cfg.seed ^ state.iteration as u64);
         state.traced_at = vec![state.iteration; state.surfels.len()];
         times.cache_refresh += t.elapsed().as_secs_f64();
     }
@@ -778,7 +778,7 @@ pub fn run_until(
             let limit = cfg.cache_every.saturating_sub(check_every);
             stale.clear();
             stale.extend((0..state.traced_at.len() as u32).filter(|&i| it - state.traced_at[i as usize] > limit));
-            state.cache.refresh_rows(&tracer, &state.surfels, &stale, offset, cfg.seed ^ it as u64);
+            state.cache.refresh_rows(&tracer, &state.surfels, &stale, start, cfg.seed ^ it as u64);
             for &i in &stale {
                 state.traced_at[i as usize] = it;
             }
@@ -874,7 +874,7 @@ mod tests {
             }
             let tracer = Tracer::build(&s, &trace_settings());
             let mut cache = IncidentCache::default();
-            cache.refresh(&tracer, &s, 16, 1e-3, 3);
+            cache.refresh(&tracer, &s, 16, crate::shade::incident::RayStart::offset_only(1e-3), 3);
             if occluded {
                 assert!(cache.visibility.iter().any(|&v| v < 0.9), "the test needs occlusion");
             } else {
@@ -963,7 +963,7 @@ mod tests {
         let ss = SplitSum::new(&env).unwrap();
         let tracer = Tracer::build(&s, &trace_settings());
         let mut cache = IncidentCache::default();
-        cache.refresh(&tracer, &s, 64, 1e-3, 5);
+        cache.refresh(&tracer, &s, 64, crate::shade::incident::RayStart::offset_only(1e-3), 5);
         assert!(cache.visibility.iter().all(|&v| v == 1.0));
         let mut mats = MaterialView::default();
         mats.update(&s);

@@ -132,11 +132,7 @@ pub fn hemisphere_rays(s: &Surfels, seed: u64, skip_margin: f32) -> Vec<Ray> {
         let i = rng.random_range(0..s.len());
         let n = s.normal(i);
         let m = s.means[i];
-        let skip_below = if skip_margin > 0.0 {
-            [n[0], n[1], n[2], n[0] * m[0] + n[1] * m[1] + n[2] * m[2] + skip_margin]
-        } else {
-            [0.0; 4]
-        };
+        let skip_below = if skip_margin > 0.0 { crate::trace::skip_plane_above(n, m, skip_margin) } else { [0.0; 4] };
         for _ in 0..64 {
             let mut d = random_unit(&mut rng);
             if d[0] * n[0] + d[1] * n[1] + d[2] * n[2] < 0.0 {

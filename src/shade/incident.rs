@@ -100,7 +100,7 @@ pub fn surfel_rays(
     let offset = start.offset;
     let origin = [m[0] + offset * n[0], m[1] + offset * n[1], m[2] + offset * n[2]];
     let skip_below = match start.skip_margin {
-        Some(margin) => [n[0], n[1], n[2], n[0] * m[0] + n[1] * m[1] + n[2] * m[2] + margin],
+        Some(margin) => crate::trace::skip_plane_above(n, m, margin),
         None => [0.0; 4],
     };
     for (r, d) in rays.iter_mut().zip(dirs.iter()) {

@@ -147,6 +147,10 @@ impl PbrInputs<'_> {
 }
 
 /// One surfel, f64: (direct, indirect).
+/// Chunks per parallel accumulator of the env gradient (a fixed partition, so the sum's order
+/// is fixed).
+const REDUCE_GROUP: usize = 4;
+
 pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
@@ -312,7 +316,10 @@ pub fn shade_surfels_backward(
         .zip(grads.v_visibility.par_chunks_mut(CHUNK * s))
         .zip(grads.v_indirect.par_chunks_mut(CHUNK * s))
         .enumerate()
-        .fold(
+        // Fixed groups of chunks, summed in order: the env gradient does not depend on how
+        // rayon schedules the work (a plain fold + reduce made resumed runs differ).
+        .fold_chunks(
+            REDUCE_GROUP,
             || if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] },
             |mut acc, (c, (((((va, vr), vn), vv), vvis), vind))| {
                 for j in 0..va.len() {
@@ -336,7 +343,9 @@ pub fn shade_surfels_backward(
                 acc
             },
         )
-        .reduce(Vec::new, |mut a, b| {
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold(Vec::new(), |mut a, b| {
             if a.is_empty() {
                 return b;
             }
@@ -419,7 +428,8 @@ pub fn shade_subset_backward(
         .zip(grads.v_normal.par_chunks_mut(CHUNK))
         .zip(grads.v_view.par_chunks_mut(CHUNK))
         .enumerate()
-        .fold(
+        .fold_chunks(
+            REDUCE_GROUP,
             || (if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] }, vec![0.0f32; s], vec![[0.0f32; 3]; s]),
             |(mut acc, mut vvis, mut vind), (c, (((va, vr), vn), vv))| {
                 for j in 0..va.len() {
@@ -444,7 +454,9 @@ pub fn shade_subset_backward(
             },
         )
         .map(|(acc, _, _)| acc)
-        .reduce(Vec::new, |mut a, b| {
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold(Vec::new(), |mut a, b| {
             if a.is_empty() {
                 return b;
             }

@@ -713,7 +713,10 @@ impl SplitSum {
             .zip(v_normal.par_chunks_mut(CHUNK))
             .zip(v_view.par_chunks_mut(CHUNK))
             .enumerate()
-            .fold(
+            // Fixed groups of chunks, summed in order: the result does not depend on how rayon
+            // schedules the work (a plain fold + reduce made resumed runs differ).
+            .fold_chunks(
+                4,
                 || self.zero_grads(),
                 |mut g, (c, (((va, vr), vn), vv))| {
                     for k in 0..va.len() {
@@ -727,24 +730,23 @@ impl SplitSum {
                     g
                 },
             )
-            .reduce(
-                || self.zero_grads(),
-                |mut a, b| {
-                    for (la, lb) in a.v_levels.iter_mut().zip(&b.v_levels) {
-                        for (x, y) in la.iter_mut().zip(lb) {
-                            for ch in 0..3 {
-                                x[ch] += y[ch];
-                            }
-                        }
-                    }
-                    for (x, y) in a.v_irradiance.iter_mut().zip(&b.v_irradiance) {
+            .collect::<Vec<_>>()
+            .into_iter()
+            .fold(self.zero_grads(), |mut a, b| {
+                for (la, lb) in a.v_levels.iter_mut().zip(&b.v_levels) {
+                    for (x, y) in la.iter_mut().zip(lb) {
                         for ch in 0..3 {
                             x[ch] += y[ch];
                         }
                     }
-                    a
-                },
-            );
+                }
+                for (x, y) in a.v_irradiance.iter_mut().zip(&b.v_irradiance) {
+                    for ch in 0..3 {
+                        x[ch] += y[ch];
+                    }
+                }
+                a
+            });
         self.backward_to_env(&grads, v_texels);
     }
 }

@@ -80,8 +80,16 @@ pub struct Ray {
     /// A plane (n, c): hits on surfels whose centre μ has n·μ < c are ignored. Rays leaving a
     /// surfel pass the surfel's tangent plane raised by a margin, so they skip the surface
     /// they start from — its own translucent layers and the tilted surfels in them — while
-    /// anything rising above the plane still occludes. Zero (the default) ignores nothing.
+    /// anything rising above the plane still occludes. A zero normal (the default) ignores
+    /// nothing. See [`skip_plane_above`].
     pub skip_below: [f32; 4],
+}
+
+/// The [`Ray::skip_below`] plane of rays leaving `point` on a surface of unit `normal`: its
+/// tangent plane raised by `margin`.
+pub fn skip_plane_above(normal: [f32; 3], point: [f32; 3], margin: f32) -> [f32; 4] {
+    let height = normal[0] * point[0] + normal[1] * point[1] + normal[2] * point[2];
+    [normal[0], normal[1], normal[2], height + margin]
 }
 
 /// Per-surfel feature channels composited instead of SH radiance: `data` is N × `channels`.

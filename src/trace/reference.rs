@@ -66,7 +66,9 @@ pub fn all_hits(s: &Surfels, ray: &Ray, settings: &TraceSettings) -> Vec<(RefHit
         let alpha = raw.min(ALPHA_MAX as f64);
         let facing = b < 0.0 || (settings.two_sided && b > 0.0);
         let sk = ray.skip_below.map(|x| x as f64);
-        let skipped = dot([sk[0], sk[1], sk[2]], mu) < sk[3];
+        // A zero normal is no plane (whatever its offset), as in the fast path.
+        let plane = sk[0] != 0.0 || sk[1] != 0.0 || sk[2] != 0.0;
+        let skipped = plane && dot([sk[0], sk[1], sk[2]], mu) < sk[3];
         let valid = facing
             && !skipped
             && t.is_finite()

@@ -620,8 +620,7 @@ fn skip_planes_match_brute_force() {
     for r in rays.iter_mut() {
         if let Some(i) = s.means.iter().position(|m| *m == r.origin) {
             let n = s.normal(i);
-            let c = n[0] * r.origin[0] + n[1] * r.origin[1] + n[2] * r.origin[2] + rng.random_range(-0.05..0.4f32);
-            r.skip_below = [n[0], n[1], n[2], c];
+            r.skip_below = skip_plane_above(n, r.origin, rng.random_range(-0.05..0.4f32));
         }
     }
     let settings = TraceSettings::default();
@@ -634,6 +633,12 @@ fn skip_planes_match_brute_force() {
     compare_with_reference(&s, &rays, &settings, None);
     compare_with_reference(&s, &rays, &TraceSettings { two_sided: true, ..Default::default() }, None);
     compare_with_reference(&s, &rays, &TraceSettings { chunk: 2, min_transmittance: 1e-4, ..Default::default() }, None);
+    // A zero normal is no plane, whatever its offset: both tracers ignore it.
+    let unplaned: Vec<Ray> = plain.iter().map(|r| Ray { skip_below: [0.0, 0.0, 0.0, 5.0], ..*r }).collect();
+    for (a, b) in unplaned.iter().zip(&plain) {
+        assert_eq!(trace_ref(&s, a, &settings, None).hits, trace_ref(&s, b, &settings, None).hits);
+    }
+    compare_with_reference(&s, &unplaned, &settings, None);
 }
 
 #[test]

@@ -195,6 +195,7 @@ fn encode(img: &Image, format: image::ImageFormat, path: &Path) -> Result<Vec<u8
                 .ok_or_else(|| Error::invalid(path.display().to_string(), "image buffer has the wrong size"))?
                 .write_to(&mut cursor, format)
         }
+        (image::ImageFormat::OpenExr, _) => return encode_exr(img, path),
         _ => {
             let out = if img.channels == 3 { expand_to(img, 3) } else { expand_to(img, 4) };
             let dynimg = if out.channels == 3 {
@@ -206,6 +207,34 @@ fn encode(img: &Image, format: image::ImageFormat, path: &Path) -> Result<Vec<u8
                 .ok_or_else(|| Error::invalid(path.display().to_string(), "image buffer has the wrong size"))?
                 .write_to(&mut cursor, format)
         }
+    };
+    result.map_err(|e| Error::format(path, "encoding", e.to_string()))?;
+    Ok(bytes)
+}
+
+/// OpenEXR, ZIP-compressed scan lines in increasing order. The `image` crate's writer uses the
+/// exr default (tiles in unspecified order, compressed in parallel), so the same picture could
+/// come out as different bytes from run to run; a run's outputs must be reproducible.
+fn encode_exr(img: &Image, path: &Path) -> Result<Vec<u8>> {
+    use exr::prelude::{Encoding, Image as ExrImage, SpecificChannels, Vec2, WritableImage};
+    let (w, h) = (img.width as usize, img.height as usize);
+    let out = if img.channels == 3 { expand_to(img, 3) } else { expand_to(img, 4) };
+    let n = out.channels;
+    let px = |p: Vec2<usize>| &out.data[(p.y() * w + p.x()) * n..(p.y() * w + p.x() + 1) * n];
+    let mut bytes = Vec::new();
+    let mut cursor = std::io::Cursor::new(&mut bytes);
+    let result = if n == 3 {
+        let channels = SpecificChannels::rgb(|p: Vec2<usize>| {
+            let v = px(p);
+            (v[0], v[1], v[2])
+        });
+        ExrImage::from_encoded_channels((w, h), Encoding::SMALL_LOSSLESS, channels).write().to_buffered(&mut cursor)
+    } else {
+        let channels = SpecificChannels::rgba(|p: Vec2<usize>| {
+            let v = px(p);
+            (v[0], v[1], v[2], v[3])
+        });
+        ExrImage::from_encoded_channels((w, h), Encoding::SMALL_LOSSLESS, channels).write().to_buffered(&mut cursor)
     };
     result.map_err(|e| Error::format(path, "encoding", e.to_string()))?;
     Ok(bytes)
@@ -267,6 +296,28 @@ mod tests {
         write_image(&dir.join("a.exr"), &img).unwrap();
         assert_eq!(read_rgba(&dir.join("a.exr")).unwrap(), img);
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Many blocks compressed in parallel must still give the same bytes every time (the exr
+    /// default order is completion order), and read back exactly, for RGB and RGBA.
+    #[test]
+    fn exr_bytes_are_reproducible() {
+        let path = Path::new("reproducible.exr");
+        for channels in [3, 4] {
+            let mut img = Image::new(96, 200, channels);
+            for (i, v) in img.data.iter_mut().enumerate() {
+                *v = ((i * 7919) % 1013) as f32 * 0.37;
+            }
+            let first = encode_exr(&img, path).unwrap();
+            for _ in 0..20 {
+                assert!(encode_exr(&img, path).unwrap() == first, "{channels} channels: bytes differ");
+            }
+            let dir = std::env::temp_dir().join(format!("radiogs-exr-{}-{channels}", std::process::id()));
+            write_image(&dir.join("a.exr"), &img).unwrap();
+            let back = read_rgba(&dir.join("a.exr")).unwrap();
+            assert_eq!(back, expand_to(&img, 4));
+            std::fs::remove_dir_all(&dir).unwrap();
+        }
     }
 
     #[test]

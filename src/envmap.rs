@@ -176,7 +176,7 @@ impl EnvMap {
 
     /// Resample to width × height by area averaging (supersampled box filter).
     pub fn resample(&self, width: usize, height: usize) -> EnvMap {
-        let sub = (self.width / width).max(1).min(8) * 2;
+        let sub = (self.width / width).clamp(1, 8) * 2;
         let mut out = EnvMap::constant(width, height, [0.0; 3]);
         for j in 0..height {
             for i in 0..width {

@@ -24,7 +24,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 3000)]
     pub iters: u32,
     /// Iterations of the inverse-rendering stage.
-    #[arg(long, default_value_t = 500)]
+    #[arg(long, default_value_t = 1500)]
     pub inverse_iters: u32,
     /// Finetune iterations per light when relighting.
     #[arg(long, default_value_t = 150)]

@@ -197,15 +197,7 @@ fn encode(img: &Image, format: image::ImageFormat, path: &Path) -> Result<Vec<u8
         }
         (image::ImageFormat::OpenExr, _) => return encode_exr(img, path),
         _ => {
-            let out = if img.channels == 3 { expand_to(img, 3) } else { expand_to(img, 4) };
-            let dynimg = if out.channels == 3 {
-                image::Rgb32FImage::from_raw(w, h, out.data).map(image::DynamicImage::ImageRgb32F)
-            } else {
-                image::Rgba32FImage::from_raw(w, h, out.data).map(image::DynamicImage::ImageRgba32F)
-            };
-            dynimg
-                .ok_or_else(|| Error::invalid(path.display().to_string(), "image buffer has the wrong size"))?
-                .write_to(&mut cursor, format)
+            return Err(Error::invalid(path.display().to_string(), "unsupported image format (use png, exr or hdr)"));
         }
     };
     result.map_err(|e| Error::format(path, "encoding", e.to_string()))?;
@@ -318,6 +310,16 @@ mod tests {
             assert_eq!(back, expand_to(&img, 4));
             std::fs::remove_dir_all(&dir).unwrap();
         }
+    }
+
+    /// Formats the image crate knows but we do not write are refused by name, nothing written.
+    #[test]
+    fn unsupported_output_format_is_refused() {
+        let dir = std::env::temp_dir().join(format!("radiogs-fmt-{}", std::process::id()));
+        let path = dir.join("a.jpg");
+        let err = write_image(&path, &Image::new(4, 4, 3)).unwrap_err().to_string();
+        assert!(err.contains("a.jpg") && err.contains("png, exr or hdr"), "{err}");
+        assert!(!path.exists());
     }
 
     #[test]

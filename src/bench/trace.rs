@@ -15,7 +15,10 @@
 //! starting at the surfel's centre (RadioGS's radiometric-consistency batch), 131072 rays.
 
 use crate::surfels::{Surfels, mean_sq_dist_3nn, quat_with_normal};
-use crate::trace::{Ray, RayGrad, RayOutput, TraceSettings, Tracer, trace, trace_backward};
+use crate::trace::{
+    HitRecord, Ray, RayGrad, RayOutput, TraceSettings, Tracer, trace, trace_backward, trace_backward_recorded,
+    trace_recorded,
+};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
@@ -221,6 +224,11 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
             vec![RayGrad { v_radiance: [1.0; 3], v_transmittance: 1.0, v_depth: 0.1, v_normal: [0.1; 3] }; rays.len()];
         let mut v = s.zeros_like();
         let bwd = time(reps.div_ceil(2), || trace_backward(&tracer, &s, &rays, None, &grads, None, &mut v, None, None));
+        // The consistency step's path: the forward keeps its hits, the backward replays them.
+        let mut record = HitRecord::default();
+        let fwd_rec = time(reps, || trace_recorded(&tracer, &s, &rays, &mut out, &mut record));
+        let bwd_rec =
+            time(reps.div_ceil(2), || trace_backward_recorded(&tracer, &s, &rays, &grads, &mut v, None, &record));
         let closest = time(reps, || {
             let hits: usize =
                 rays.par_iter().with_min_len(32).filter(|r| tracer.closest_hit(r.origin, r.dir).is_some()).count();
@@ -244,6 +252,10 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
         println!("  forward+backward {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
         let f = rate(bwd);
         println!("  backward alone   {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        let f = rate((fwd_rec.0 + bwd_rec.0, fwd_rec.1 + bwd_rec.1));
+        println!("  recorded fwd+bwd {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        let f = rate(bwd_rec);
+        println!("  replayed bwd     {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
         let f = rate(closest);
         println!("  closest-hit      {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
         println!(

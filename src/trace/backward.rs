@@ -15,17 +15,18 @@
 //! SH direction gradient is summed per ray and pushed through d̂ = d/|d| once.
 //!
 //! Parallel decomposition: rayon over fixed blocks of rays (in the forward's coherent order,
-//! a function of the rays alone); each block borrows a dense gradient
-//! buffer from a pool (about one per thread), remembers which surfels it touched and returns
-//! their records as a sparse list (clearing the buffer). The lists are added into `v_surfels` in
-//! block order, so the gradients are bitwise deterministic whatever the thread count or
+//! a function of the rays alone); each block borrows a gradient buffer from a pool (about one
+//! per thread) that keeps the records of the surfels it touched compactly (a slot per surfel,
+//! first-touch order) and returns them as a list sorted by surfel. The lists are added into
+//! `v_surfels` in block order, threads taking disjoint surfel ranges, so the gradients are
+//! bitwise deterministic whatever the thread count or
 //! scheduling (no atomics, no per-hit locking).
 
 use crate::sh::{self, SH_COEFFS};
 use crate::shade::incident::{decode, decode_derivative};
 use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat, rotation_from_quat_backward, sigmoid};
-use crate::trace::bvh::{Hit, PreparedRay, Tracer};
-use crate::trace::forward::{HitRecord, coherent_order, march, sh_colour, unit};
+use crate::trace::bvh::{PreparedRay, Tracer};
+use crate::trace::forward::{HitRecord, RecordedHit, coherent_order, march, prefetch, sh_colour, unit};
 use crate::trace::{ALPHA_MAX, Features, Ray, RayGrad};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -34,6 +35,8 @@ use std::sync::Mutex;
 const RAYS_PER_BLOCK: usize = 256;
 /// Blocks traced in parallel before their gradient lists are merged.
 const BLOCKS_PER_WAVE: usize = 64;
+/// Surfels per parallel task of the merge.
+const MERGE_RANGE: usize = 2048;
 // Offsets in a gradient record: means 3, log_scales 2, quats 4, opacity 1, then SH, features.
 const O_MEAN: usize = 0;
 const O_SCALE: usize = 3;
@@ -41,33 +44,53 @@ const O_QUAT: usize = 5;
 const O_OPACITY: usize = 9;
 const O_SH: usize = 10;
 
-/// A dense per-thread gradient buffer with the list of surfels it touched.
+/// A per-thread gradient buffer: the records of the surfels one block of rays touched, stored
+/// compactly in first-touch order (a block's few thousand records stay in L2; a dense
+/// surfels × stride buffer spread them over tens of MB and every first touch missed the cache).
 struct GradBuf {
-    data: Vec<f32>,
+    /// Per surfel: its record's slot in `data`, or `NO_SLOT`.
+    slot_of: Vec<u32>,
+    /// Per slot: the surfel.
     touched: Vec<u32>,
-    mark: Vec<bool>,
-    hits: Vec<(Hit, f32)>,
+    data: Vec<f32>,
+    hits: Vec<RecordedHit>,
     feat_scratch: Vec<f32>,
 }
 
+const NO_SLOT: u32 = u32::MAX;
+
 impl GradBuf {
-    fn new(n: usize, stride: usize) -> Self {
+    fn new(n: usize) -> Self {
         GradBuf {
-            data: vec![0.0; n * stride],
+            slot_of: vec![NO_SLOT; n],
             touched: Vec::new(),
-            mark: vec![false; n],
+            data: Vec::new(),
             hits: Vec::new(),
             feat_scratch: Vec::new(),
         }
     }
     #[inline]
     fn record(&mut self, i: usize, stride: usize) -> &mut [f32] {
-        if !self.mark[i] {
-            self.mark[i] = true;
+        let mut slot = self.slot_of[i] as usize;
+        if slot == NO_SLOT as usize {
+            slot = self.touched.len();
+            self.slot_of[i] = slot as u32;
             self.touched.push(i as u32);
+            self.data.resize(self.data.len() + stride, 0.0);
         }
-        &mut self.data[i * stride..(i + 1) * stride]
+        &mut self.data[slot * stride..(slot + 1) * stride]
     }
+}
+
+/// What the backward reads of a surfel per hit, packed into one cache line (the scene's
+/// separate arrays cost four scattered loads per hit) with the exponentials done once.
+#[derive(Clone, Copy, Default)]
+#[repr(C, align(64))]
+struct SurfelGeometry {
+    mean: [f32; 3],
+    quat: [f32; 4],
+    scale: [f32; 2],
+    opacity: f32,
 }
 
 /// Gradients of a loss on the outputs of [`crate::trace::trace`] (same tracer, surfels, rays,
@@ -90,7 +113,19 @@ pub fn trace_backward(
     v_surfel_features: Option<&mut [f32]>,
     v_rays: Option<&mut [Ray]>,
 ) {
-    backward(tracer, surfels, rays, features, grads, v_features_out, v_surfels, v_surfel_features, v_rays, None);
+    backward(
+        tracer,
+        surfels,
+        rays,
+        features,
+        grads,
+        v_features_out,
+        v_surfels,
+        v_surfel_features,
+        v_rays,
+        None,
+        MERGE_RANGE,
+    );
 }
 
 /// [`trace_backward`] for rays traced by [`crate::trace::forward::trace_recorded`] (SH
@@ -106,11 +141,13 @@ pub fn trace_backward_recorded(
     record: &HitRecord,
 ) {
     assert_eq!(record.spans.len(), rays.len(), "trace_backward_recorded: the record is of another ray set");
-    backward(tracer, surfels, rays, None, grads, None, v_surfels, None, v_rays, Some(record));
+    backward(tracer, surfels, rays, None, grads, None, v_surfels, None, v_rays, Some(record), MERGE_RANGE);
 }
 
+/// Both backwards; `merge_range` is the number of surfels per parallel merge task (results do
+/// not depend on it; the tests check that).
 #[allow(clippy::too_many_arguments)]
-fn backward(
+pub(crate) fn backward(
     tracer: &Tracer,
     surfels: &Surfels,
     rays: &[Ray],
@@ -121,8 +158,10 @@ fn backward(
     mut v_surfel_features: Option<&mut [f32]>,
     v_rays: Option<&mut [Ray]>,
     record: Option<&HitRecord>,
+    merge_range: usize,
 ) {
     let n = surfels.len();
+    let merge_range = merge_range.max(1);
     assert_eq!(grads.len(), rays.len(), "trace_backward: {} grads for {} rays", grads.len(), rays.len());
     assert_eq!(v_surfels.len(), n, "trace_backward: v_surfels has {} surfels, scene {}", v_surfels.len(), n);
     assert!(
@@ -149,61 +188,120 @@ fn backward(
     }
     let pool: Mutex<Vec<GradBuf>> = Mutex::new(Vec::new());
     let want_rays = v_rays.is_some();
-    let ctx = Ctx { tracer, surfels, ncoef, channels, fdata, vfo, o_feat, stride, use_features, want_rays, record };
+    let geometry: Vec<SurfelGeometry> = (0..n)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| SurfelGeometry {
+            mean: surfels.means[i],
+            quat: surfels.quats[i],
+            scale: surfels.scale(i),
+            opacity: sigmoid(surfels.opacity_logits[i]),
+        })
+        .collect();
+    let ctx = Ctx {
+        tracer,
+        surfels,
+        geometry: &geometry,
+        ncoef,
+        channels,
+        fdata,
+        vfo,
+        o_feat,
+        stride,
+        use_features,
+        want_rays,
+        record,
+    };
 
     // One block of rays: accumulate into a pooled dense buffer, then hand back the touched
     // records as a sparse list (first-touch order) and clear the buffer. Which buffer a block
     // borrows does not matter (it is all zeros), so the sparse lists depend only on the rays.
     let process = |ids: &[u32], mut vr: Option<&mut [Ray]>| -> Sparse {
-        let mut buf = pool.lock().unwrap().pop().unwrap_or_else(|| GradBuf::new(n, stride));
+        let mut buf = pool.lock().unwrap().pop().unwrap_or_else(|| GradBuf::new(n));
         for (k, &r) in ids.iter().enumerate() {
+            // Per-hit surfel loads are scattered: ask for the next ray's while this one runs.
+            if let (Some(rec), Some(&next)) = (record, ids.get(k + 1)) {
+                let (a, b) = rec.spans[next as usize];
+                for rh in &rec.hits[a as usize..b as usize] {
+                    prefetch(&ctx.geometry[rh.hit.index as usize]);
+                }
+            }
             let r = r as usize;
             let g = ctx.ray_backward(r, &rays[r], &grads[r], &mut buf);
             if let Some(vr) = vr.as_deref_mut() {
                 vr[k] = g;
             }
         }
-        let mut sparse = Sparse { index: Vec::with_capacity(buf.touched.len()), data: Vec::new() };
-        sparse.data.reserve(buf.touched.len() * stride);
+        // Records sorted by surfel, so the merge can hand out surfel ranges to threads.
+        let mut by_surfel: Vec<u32> = (0..buf.touched.len() as u32).collect();
+        by_surfel.sort_unstable_by_key(|&slot| buf.touched[slot as usize]);
+        let mut sparse =
+            Sparse { index: Vec::with_capacity(by_surfel.len()), data: Vec::with_capacity(buf.data.len()) };
+        for &slot in &by_surfel {
+            let slot = slot as usize;
+            sparse.index.push(buf.touched[slot]);
+            sparse.data.extend_from_slice(&buf.data[slot * stride..(slot + 1) * stride]);
+        }
         for &i in &buf.touched {
-            let i = i as usize;
-            let rec = &mut buf.data[i * stride..(i + 1) * stride];
-            sparse.index.push(i as u32);
-            sparse.data.extend_from_slice(rec);
-            rec.fill(0.0);
-            buf.mark[i] = false;
+            buf.slot_of[i as usize] = NO_SLOT;
         }
         buf.touched.clear();
+        buf.data.clear();
         pool.lock().unwrap().push(buf);
         sparse
     };
     // Deterministic reduction: blocks have fixed boundaries (independent of the thread count
     // and scheduling) and their sparse lists are added into `v_surfels` in block order, a wave
-    // of blocks at a time (bounds the memory held by the lists).
-    let mut merge = |sp: &Sparse| {
-        for (e, &i) in sp.index.iter().enumerate() {
-            let i = i as usize;
-            let g = &sp.data[e * stride..(e + 1) * stride];
-            for a in 0..3 {
-                v_surfels.means[i][a] += g[O_MEAN + a];
-            }
-            for a in 0..2 {
-                v_surfels.log_scales[i][a] += g[O_SCALE + a];
-            }
-            for a in 0..4 {
-                v_surfels.quats[i][a] += g[O_QUAT + a];
-            }
-            v_surfels.opacity_logits[i] += g[O_OPACITY];
-            for k in 0..ncoef {
-                for ch in 0..3 {
-                    v_surfels.sh[i][k][ch] += g[O_SH + 3 * k + ch];
+    // of blocks at a time (bounds the memory held by the lists). Threads take disjoint surfel
+    // ranges, each walking every list's sorted sub-range, so each surfel's sum keeps block order.
+    let mut merge = |lists: &[Sparse]| {
+        let range_of = |sp: &Sparse, lo: usize, hi: usize| {
+            sp.index.partition_point(|&i| (i as usize) < lo)..sp.index.partition_point(|&i| (i as usize) < hi)
+        };
+        let vs = &mut *v_surfels;
+        vs.means
+            .par_chunks_mut(merge_range)
+            .zip(vs.log_scales.par_chunks_mut(merge_range))
+            .zip(vs.quats.par_chunks_mut(merge_range))
+            .zip(vs.opacity_logits.par_chunks_mut(merge_range))
+            .zip(vs.sh.par_chunks_mut(merge_range))
+            .enumerate()
+            .for_each(|(ri, ((((means, log_scales), quats), opacity_logits), sh))| {
+                let lo = ri * merge_range;
+                for sp in lists {
+                    for e in range_of(sp, lo, lo + means.len()) {
+                        let i = sp.index[e] as usize - lo;
+                        let g = &sp.data[e * stride..(e + 1) * stride];
+                        for a in 0..3 {
+                            means[i][a] += g[O_MEAN + a];
+                        }
+                        for a in 0..2 {
+                            log_scales[i][a] += g[O_SCALE + a];
+                        }
+                        for a in 0..4 {
+                            quats[i][a] += g[O_QUAT + a];
+                        }
+                        opacity_logits[i] += g[O_OPACITY];
+                        for k in 0..ncoef {
+                            for ch in 0..3 {
+                                sh[i][k][ch] += g[O_SH + 3 * k + ch];
+                            }
+                        }
+                    }
                 }
-            }
-            if let Some(vsf) = v_surfel_features.as_deref_mut() {
-                for c in 0..channels {
-                    vsf[i * channels + c] += g[o_feat + c];
+            });
+        if let Some(vsf) = v_surfel_features.as_deref_mut().filter(|_| channels > 0) {
+            vsf.par_chunks_mut(merge_range * channels).enumerate().for_each(|(ri, vsf)| {
+                let lo = ri * merge_range;
+                for sp in lists {
+                    for e in range_of(sp, lo, lo + vsf.len() / channels) {
+                        let i = sp.index[e] as usize - lo;
+                        for c in 0..channels {
+                            vsf[i * channels + c] += sp.data[e * stride + o_feat + c];
+                        }
+                    }
                 }
-            }
+            });
         }
     };
     // Blocks follow the same coherent ray order as the forward pass (a fixed function of the
@@ -227,7 +325,7 @@ fn backward(
                     .zip(vw.par_chunks_mut(RAYS_PER_BLOCK))
                     .map(|(ids, vr)| process(ids, Some(vr)))
                     .collect();
-                lists.iter().for_each(&mut merge);
+                merge(&lists);
             }
             for (&k, g) in order.iter().zip(sorted) {
                 vr[k as usize] = g;
@@ -236,7 +334,7 @@ fn backward(
         None => {
             for ow in order.chunks(wave) {
                 let lists: Vec<Sparse> = ow.par_chunks(RAYS_PER_BLOCK).map(|ids| process(ids, None)).collect();
-                lists.iter().for_each(&mut merge);
+                merge(&lists);
             }
         }
     }
@@ -251,6 +349,7 @@ struct Sparse {
 struct Ctx<'a> {
     tracer: &'a Tracer,
     surfels: &'a Surfels,
+    geometry: &'a [SurfelGeometry],
     ncoef: usize,
     channels: usize,
     fdata: &'a [f32],
@@ -281,16 +380,19 @@ impl Ctx<'_> {
         let use_features = self.use_features;
         let mut cast = std::mem::take(&mut buf.hits);
         cast.clear();
-        let (hits, t_final): (&[(Hit, f32)], f32) = match self.record {
+        // Recorded hits carry their SH colour; re-cast ones get it from the coefficients below.
+        let (hits, t_final): (&[RecordedHit], f32) = match self.record {
             Some(rec) => {
                 let (a, b) = rec.spans[ray_index];
                 (&rec.hits[a as usize..b as usize], rec.t_final[ray_index])
             }
             None => {
-                let t = march(tracer, &r, |h, trans| cast.push((*h, trans)));
+                let t =
+                    march(tracer, &r, |_| {}, |h, trans| cast.push(RecordedHit { hit: *h, trans, colour: [0.0; 3] }));
                 (&cast, t)
             }
         };
+        let recorded = self.record.is_some();
         let v_fo: &[f32] = if self.vfo.is_empty() { &[] } else { &self.vfo[ray_index * ch..(ray_index + 1) * ch] };
         let mut sfeat = std::mem::take(&mut buf.feat_scratch);
         sfeat.clear();
@@ -301,17 +403,17 @@ impl Ctx<'_> {
         let mut v_d = [0.0f32; 3];
         let mut v_basis = [0.0f32; SH_COEFFS];
         let (o, d) = (ray.origin, ray.dir);
-        for &(h, trans) in hits.iter().rev() {
+        for rh in hits.iter().rev() {
+            let (h, trans) = (&rh.hit, rh.trans);
             let i = h.index as usize;
             let alpha = h.alpha;
             let w = trans * alpha;
             let inv = 1.0 / (1.0 - alpha);
             // Recompute the hit's geometry from the parameters.
-            let rot = rotation_from_quat(surfels.quats[i]);
+            let geo = &self.geometry[i];
+            let rot = rotation_from_quat(geo.quat);
             let (tu, tv, nrm) = (rot[0], rot[1], rot[2]);
-            let sc = surfels.scale(i);
-            let op = sigmoid(surfels.opacity_logits[i]);
-            let mu = surfels.means[i];
+            let (sc, op, mu) = (geo.scale, geo.opacity, geo.mean);
             let b = dot(nrm, d);
             let sign = if two_sided && b > 0.0 { -1.0 } else { 1.0 };
             let n_eff = nrm.map(|x| sign * x);
@@ -343,7 +445,7 @@ impl Ctx<'_> {
                     rec[self.o_feat + c] += vf * w;
                 }
             } else {
-                let craw = sh_colour(&surfels.sh[i], &basis, self.ncoef);
+                let craw = if recorded { rh.colour } else { sh_colour(&surfels.sh[i], &basis, self.ncoef) };
                 let linear = tracer.settings.linear_radiance;
                 let mut v_c = [0.0f32; 3];
                 for c in 0..3 {
@@ -356,13 +458,13 @@ impl Ctx<'_> {
                         v_c[c] = g.v_radiance[c] * w * dcol;
                     }
                 }
-                let coeffs = &surfels.sh[i];
                 for k in 0..self.ncoef {
                     for c in 0..3 {
                         rec[O_SH + 3 * k + c] += v_c[c] * basis[k];
                     }
                 }
                 if self.want_rays {
+                    let coeffs = &surfels.sh[i];
                     for k in 0..self.ncoef {
                         v_basis[k] += coeffs[k][0] * v_c[0] + coeffs[k][1] * v_c[1] + coeffs[k][2] * v_c[2];
                     }
@@ -389,7 +491,7 @@ impl Ctx<'_> {
                 v_d[k] += t * v_q[k] + v_b * nrm[k];
             }
             let v_mu: [f32; 3] = std::array::from_fn(|k| -v_q[k] + v_a * nrm[k]);
-            let v_quat = rotation_from_quat_backward(surfels.quats[i], [v_tu, v_tv, v_n]);
+            let v_quat = rotation_from_quat_backward(geo.quat, [v_tu, v_tv, v_n]);
             for k in 0..3 {
                 rec[O_MEAN + k] += v_mu[k];
             }

@@ -19,8 +19,9 @@ use crate::trace::{Features, MAX_CHUNK, Ray, RayOutput, TraceSettings};
 use rayon::prelude::*;
 
 /// Visit the composited hits of one ray in order: `f(hit, T_before)`; returns the final T.
+/// `ahead` sees each gathered chunk before its hits are visited (to prefetch their data).
 #[inline]
-pub(crate) fn march(tracer: &Tracer, r: &PreparedRay, mut f: impl FnMut(&Hit, f32)) -> f32 {
+pub(crate) fn march(tracer: &Tracer, r: &PreparedRay, ahead: impl Fn(&[Hit]), mut f: impl FnMut(&Hit, f32)) -> f32 {
     let k = tracer.settings.chunk.clamp(1, MAX_CHUNK);
     let min_t = tracer.settings.min_transmittance;
     let mut trans = 1.0f32;
@@ -28,6 +29,7 @@ pub(crate) fn march(tracer: &Tracer, r: &PreparedRay, mut f: impl FnMut(&Hit, f3
     let mut buf = [Hit::default(); MAX_CHUNK];
     loop {
         let n = tracer.gather(r, after, k, (trans, min_t), &mut buf);
+        ahead(&buf[..n]);
         for h in &buf[..n] {
             f(h, trans);
             trans *= 1.0 - h.alpha;
@@ -52,6 +54,16 @@ pub(crate) fn sh_colour(coeffs: &[[f32; 3]; SH_COEFFS], basis: &[f32; SH_COEFFS]
         }
     }
     c
+}
+
+/// A hint to bring `p`'s cache line in (no effect off x86-64).
+#[inline(always)]
+pub(crate) fn prefetch<T>(p: &T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch is a hint; it never faults and reads nothing observable.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch(p as *const T as *const i8, std::arch::x86_64::_MM_HINT_T0);
+    }
 }
 
 pub(crate) fn unit(d: [f32; 3]) -> ([f32; 3], f32) {
@@ -120,10 +132,20 @@ pub struct HitRecord {
     pub(crate) order: Vec<u32>,
     /// Per ray (caller's index): its hits' range in `hits`.
     pub(crate) spans: Vec<(u32, u32)>,
-    pub(crate) hits: Vec<(Hit, f32)>,
+    pub(crate) hits: Vec<RecordedHit>,
     /// Per ray: the final transmittance.
     pub(crate) t_final: Vec<f32>,
-    chunks: Vec<Vec<(Hit, f32)>>,
+    chunks: Vec<Vec<RecordedHit>>,
+}
+
+/// One composited hit as the forward saw it: the hit, the transmittance in front of it and the
+/// surfel's SH colour along the ray before the clamp (so the backward need not load the SH
+/// coefficients again).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct RecordedHit {
+    pub hit: Hit,
+    pub trans: f32,
+    pub colour: [f32; 3],
 }
 
 /// Rays per parallel task of [`trace_recorded`] (their hit lists are joined in order).
@@ -235,17 +257,27 @@ fn trace_one(
     ray: &Ray,
     ncoef: usize,
     mut feat: Option<(&[f32], usize, &mut [f32])>,
-    mut record: Option<&mut Vec<(Hit, f32)>>,
+    mut record: Option<&mut Vec<RecordedHit>>,
 ) -> RayOutput {
     let r = PreparedRay::from_ray(ray);
     let basis = sh::basis(unit(ray.dir).0);
     let mut o = RayOutput::default();
     let two_sided = tracer.settings.two_sided;
     let linear = tracer.settings.linear_radiance;
-    let t_final = march(tracer, &r, |h, trans| {
-        if let Some(rec) = record.as_deref_mut() {
-            rec.push((*h, trans));
-        }
+    // The payload loads are scattered: ask for a chunk's before compositing it.
+    let feat_data: Option<(&[f32], usize)> = feat.as_ref().map(|(data, ch, _)| (*data, *ch));
+    let ahead = |hits: &[Hit]| match feat_data {
+        Some((data, ch)) => hits.iter().for_each(|h| prefetch(&data[h.index as usize * ch])),
+        None => hits.iter().for_each(|h| {
+            let coeffs = &surfels.sh[h.index as usize];
+            prefetch(&coeffs[0]);
+            if ncoef > 4 {
+                prefetch(&coeffs[5]);
+                prefetch(&coeffs[10]);
+            }
+        }),
+    };
+    let t_final = march(tracer, &r, ahead, |h, trans| {
         let w = trans * h.alpha;
         let i = h.index as usize;
         match feat.as_mut() {
@@ -257,6 +289,9 @@ fn trace_one(
             }
             None => {
                 let c = sh_colour(&surfels.sh[i], &basis, ncoef);
+                if let Some(rec) = record.as_deref_mut() {
+                    rec.push(RecordedHit { hit: *h, trans, colour: c });
+                }
                 for ch in 0..3 {
                     let col = c[ch].max(0.0);
                     o.radiance[ch] += w * if linear { decode(col) } else { col };

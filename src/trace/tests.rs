@@ -839,3 +839,30 @@ fn recorded_hits_replay_the_backward_exactly() {
         assert!(va != s.zeros_like());
     }
 }
+
+/// The gradient lists of the blocks are merged by surfel ranges in parallel: the sums must be
+/// bitwise those of one range walked by one task (each surfel's sum in block order), on a scene
+/// of several ranges and more rays than one wave of blocks.
+#[test]
+fn merging_by_surfel_ranges_changes_no_bit() {
+    let s = random_scene(2500, 31, 2);
+    let tracer = Tracer::build(&s, &TraceSettings::default());
+    let rays = random_rays(20_000, 32, &s);
+    let g: Vec<RayGrad> = (0..rays.len())
+        .map(|k| {
+            let x = (k % 5) as f32 * 0.1 - 0.2;
+            RayGrad { v_radiance: [0.5, x, 1.0], v_transmittance: x, v_depth: 0.1, v_normal: [x, 0.2, 0.3] }
+        })
+        .collect();
+    let run = |range: usize| {
+        let mut v = s.zeros_like();
+        crate::trace::backward::backward(&tracer, &s, &rays, None, &g, None, &mut v, None, None, None, range);
+        v
+    };
+    let one_range = run(usize::MAX);
+    let last = s.len() - 1;
+    assert!(one_range.means[last] != [0.0; 3] && one_range.means[0] != [0.0; 3], "the test needs gradients");
+    for range in [1, 7, 1000, 2048] {
+        assert!(run(range) == one_range, "merge range {range} changed the sums");
+    }
+}

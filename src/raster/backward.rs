@@ -1,7 +1,7 @@
 //! Backward rasterisation, exact for the order the forward pass used.
 //!
-//! Per pixel the forward window is re-run (`composite_pixel`) to list the blended hits in blend
-//! order with their T_before; the list is then walked back to front, 16 hits at a time (SIMD
+//! Per pixel the forward's blended hits in blend order with their T_before are replayed from
+//! its record (`render_recorded`) or listed by re-running its window (`composite_two_pixels`); the list is then walked back to front, 16 hits at a time (SIMD
 //! across hits: each hit's terms are gathered from its candidate, the suffix sums below are
 //! in-register scans, and the 16 gradient rows are written through a transpose). With
 //! every output written as O = Σ_j w_j q_j + T_n b (w_j = α_j T_j), ∂O/∂α_j = T_j q_j −
@@ -267,6 +267,28 @@ fn backward_tile_row(
             }
             (!pg.is_zero()).then_some(pg)
         };
+        if let Some(row) = state.record.as_ref().map(|r| &r.rows[ty as usize]).filter(|r| r.complete) {
+            // Replay the forward's hits.
+            let h = &mut hits[0];
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let Some(pg) = pixel_grads(x, y) else { continue };
+                    let local = ((y - y0) * w + x) as usize;
+                    let (a, b) = row.spans[local];
+                    if a == b {
+                        continue;
+                    }
+                    h.len = 0;
+                    for rh in &row.hits[a as usize..b as usize] {
+                        h.push(rh.li as usize, rh.z, rh.alpha, rh.t);
+                    }
+                    h.pad();
+                    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
+                    pixel_backward(td, s, features, h, row.t_final[local], px, py, &pg, tile_rows, stride);
+                }
+            }
+            continue;
+        }
         for y in y0..y1 {
             // Pixels in pairs, as the forward composites them (`composite_two_pixels`).
             for x in (x0..x1).step_by(2) {

@@ -27,7 +27,10 @@
 
 use super::project::{self, Projected};
 use super::tiles::{self, TileBins};
-use super::{Features, ForwardState, MAX_FEATURES, MAX_WINDOW, RasterSettings, RenderOutput, TILE};
+use super::{
+    Features, ForwardState, MAX_FEATURES, MAX_WINDOW, PixelHitRecord, RasterSettings, RecordedHit, RenderOutput,
+    RowHits, TILE,
+};
 use crate::camera::Camera;
 use crate::surfels::Surfels;
 use rayon::prelude::*;
@@ -655,6 +658,76 @@ pub fn render(
     settings: &RasterSettings,
     features: Option<Features>,
 ) -> (RenderOutput, ForwardState) {
+    render_impl(surfels, camera, settings, features, None)
+}
+
+/// [`render`], keeping every pixel's blended hits in the state for [`crate::raster::render_backward`]
+/// (which then need not re-run the pixels' sorting windows): for training. `reuse` is a record
+/// taken back from an earlier state (or the default); its buffers are refilled.
+pub fn render_recorded(
+    surfels: &Surfels,
+    camera: &Camera,
+    settings: &RasterSettings,
+    features: Option<Features>,
+    reuse: PixelHitRecord,
+) -> (RenderOutput, ForwardState) {
+    render_impl(surfels, camera, settings, features, Some((reuse, RECORD_BUDGET_BYTES)))
+}
+
+/// [`render_recorded`] with another budget (tests: rows that do not fit).
+#[cfg(test)]
+pub(crate) fn render_recorded_with_budget(
+    surfels: &Surfels,
+    camera: &Camera,
+    settings: &RasterSettings,
+    features: Option<Features>,
+    reuse: PixelHitRecord,
+    budget_bytes: usize,
+) -> (RenderOutput, ForwardState) {
+    render_impl(surfels, camera, settings, features, Some((reuse, budget_bytes)))
+}
+
+/// A hit record holds at most about this much (16 bytes a hit): a row of tiles that would
+/// need more than its share is not recorded and the backward re-runs its windows (same
+/// results). Training at 200² needs ~100 MiB; 100k surfels at 800² would need ~750 MiB.
+pub const RECORD_BUDGET_BYTES: usize = 256 << 20;
+
+/// Renders a sequence of training frames with [`render_recorded`], reusing one record's
+/// buffers from frame to frame.
+#[derive(Debug, Default)]
+pub struct HitRecorder {
+    spare: PixelHitRecord,
+}
+
+impl HitRecorder {
+    pub fn render(
+        &mut self,
+        surfels: &Surfels,
+        camera: &Camera,
+        settings: &RasterSettings,
+        features: Option<Features>,
+    ) -> (RenderOutput, ForwardState) {
+        render_recorded(surfels, camera, settings, features, std::mem::take(&mut self.spare))
+    }
+    /// Take the record back from a state (after its backward) for the next frame.
+    pub fn recycle(&mut self, state: &mut ForwardState) {
+        if let Some(record) = state.record.take() {
+            self.spare = record;
+        }
+    }
+}
+
+fn render_impl(
+    surfels: &Surfels,
+    camera: &Camera,
+    settings: &RasterSettings,
+    features: Option<Features>,
+    record: Option<(PixelHitRecord, usize)>,
+) -> (RenderOutput, ForwardState) {
+    let (mut record, budget_bytes) = match record {
+        Some((r, b)) => (Some(r), b),
+        None => (None, 0),
+    };
     let n = surfels.len();
     let (w, h) = (camera.width, camera.height);
     let nch = features.map_or(0, |f| f.channels);
@@ -669,12 +742,28 @@ pub fn render(
     let evaluations: u64 = if w == 0 || h == 0 {
         0
     } else {
-        buf.par_chunks_mut((TILE * w) as usize * stride)
-            .enumerate()
-            .map_init(TileData::default, |td, (ty, chunk)| {
-                render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td)
-            })
-            .sum()
+        let chunks = buf.par_chunks_mut((TILE * w) as usize * stride).enumerate();
+        match record.as_mut() {
+            Some(rec) => {
+                rec.rows.resize_with(bins.tiles_y as usize, RowHits::default);
+                let cap = budget_bytes / std::mem::size_of::<RecordedHit>() / bins.tiles_y.max(1) as usize;
+                chunks
+                    .zip(rec.rows.par_iter_mut())
+                    .map_init(
+                        || (TileData::default(), Vec::new()),
+                        |(td, pending), ((ty, chunk), row)| {
+                            let rec = Some((row, pending, cap));
+                            render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, rec)
+                        },
+                    )
+                    .sum()
+            }
+            None => chunks
+                .map_init(TileData::default, |td, (ty, chunk)| {
+                    render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, None)
+                })
+                .sum(),
+        }
     };
     let px = (w * h) as usize;
     let o = settings.outputs;
@@ -708,7 +797,7 @@ pub fn render(
     drop(buf);
     let radii = proj.radius.clone();
     let visible = radii.iter().map(|&r| r > 0.0).collect();
-    let state = ForwardState { width: w, height: h, proj, tiles: bins, radii, visible, evaluations };
+    let state = ForwardState { width: w, height: h, proj, tiles: bins, radii, visible, evaluations, record };
     (out, state)
 }
 
@@ -725,6 +814,9 @@ fn render_tile_row(
     chunk: &mut [f32],
     stride: usize,
     td: &mut TileData,
+    // The row's hit record, a scratch list for the second pixel of a pair (whose blends
+    // interleave with the first's) and the row's share of the record budget.
+    mut record: Option<(&mut RowHits, &mut Vec<RecordedHit>, usize)>,
 ) -> u64 {
     let w = camera.width;
     let h = camera.height;
@@ -733,6 +825,15 @@ fn render_tile_row(
     let mut evals = 0u64;
     let y0 = ty * TILE;
     let y1 = (y0 + TILE).min(h);
+    if let Some((row, _, _)) = record.as_mut() {
+        let px = ((y1 - y0) * w) as usize;
+        row.complete = true;
+        row.hits.clear();
+        row.spans.clear();
+        row.spans.resize(px, (0, 0));
+        row.t_final.clear();
+        row.t_final.resize(px, 1.0);
+    }
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
@@ -746,19 +847,63 @@ fn render_tile_row(
                 let two = x + 1 < x1;
                 let (mut sa, mut sb) = (PixelSums::default(), PixelSums::default());
                 let pf = [(x as f32 + 0.5, y as f32 + 0.5), (x as f32 + 1.5, y as f32 + 0.5)];
-                // Inlined so the sums stay in registers across blends.
-                let [(ta, eva), (tb, evb)] = composite_two_pixels(
-                    td,
-                    pf,
-                    two,
-                    s,
-                    k,
-                    #[inline(always)]
-                    |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
-                    #[inline(always)]
-                    |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
-                );
-                let at = |x: u32| ((y - y0) * w + x) as usize * stride;
+                let local = |x: u32| ((y - y0) * w + x) as usize;
+                // Over its share of the budget a row stops recording (at most a pair's hits over).
+                let recording = match record.as_mut() {
+                    Some((row, _, cap)) if row.complete => {
+                        if row.hits.len() > *cap {
+                            row.complete = false;
+                            row.hits.clear();
+                        }
+                        row.complete
+                    }
+                    _ => false,
+                };
+                let [(ta, eva), (tb, evb)] = match record.as_mut().filter(|_| recording) {
+                    // Inlined so the sums stay in registers across blends.
+                    None => composite_two_pixels(
+                        td,
+                        pf,
+                        two,
+                        s,
+                        k,
+                        #[inline(always)]
+                        |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
+                        #[inline(always)]
+                        |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
+                    ),
+                    Some((row, pending, _)) => {
+                        let start_a = row.hits.len() as u32;
+                        pending.clear();
+                        let res = composite_two_pixels(
+                            td,
+                            pf,
+                            two,
+                            s,
+                            k,
+                            #[inline(always)]
+                            |li, z, alpha, t| {
+                                sa.blend(td, s, features, li, z, alpha, t);
+                                row.hits.push(RecordedHit { li: li as u32, z, alpha, t });
+                            },
+                            #[inline(always)]
+                            |li, z, alpha, t| {
+                                sb.blend(td, s, features, li, z, alpha, t);
+                                pending.push(RecordedHit { li: li as u32, z, alpha, t });
+                            },
+                        );
+                        let end_a = row.hits.len() as u32;
+                        row.spans[local(x)] = (start_a, end_a);
+                        row.t_final[local(x)] = res[0].0;
+                        if two {
+                            row.hits.extend_from_slice(pending);
+                            row.spans[local(x + 1)] = (end_a, row.hits.len() as u32);
+                            row.t_final[local(x + 1)] = res[1].0;
+                        }
+                        res
+                    }
+                };
+                let at = |x: u32| local(x) * stride;
                 sa.write(&mut chunk[at(x)..][..stride], ta, s, nch);
                 evals += eva as u64;
                 if two {

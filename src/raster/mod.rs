@@ -20,7 +20,7 @@ mod tests;
 pub mod tiles;
 
 pub use backward::render_backward;
-pub use forward::render;
+pub use forward::{HitRecorder, render, render_recorded};
 
 /// Tile side in pixels.
 pub const TILE: u32 = 16;
@@ -118,7 +118,7 @@ pub struct Features<'a> {
 }
 
 /// Rendered images. Outputs that were not requested are empty vectors.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct RenderOutput {
     pub width: u32,
     pub height: u32,
@@ -181,4 +181,61 @@ pub struct ForwardState {
     pub visible: Vec<bool>,
     /// Surfel-pixel hit evaluations performed (pixels × tile-list entries up to early stop).
     pub evaluations: u64,
+    /// Every pixel's blended hits, when rendered by [`render_recorded`]: the backward then
+    /// replays them instead of re-running each pixel's sorting window. Take it back
+    /// (`state.record.take()`) to reuse its buffers in the next frame.
+    pub record: Option<PixelHitRecord>,
+}
+
+/// One blended hit as the forward saw it: the candidate's index in its tile's list, its depth,
+/// α and the transmittance in front of it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(crate) struct RecordedHit {
+    pub li: u32,
+    pub z: f32,
+    pub alpha: f32,
+    pub t: f32,
+}
+
+/// The blended hits of one row of tiles, pixels in row-major order within the row.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct RowHits {
+    pub hits: Vec<RecordedHit>,
+    /// Per pixel of the row (index (y − y0)·width + x): its range in `hits`.
+    pub spans: Vec<(u32, u32)>,
+    /// Per pixel: the final transmittance.
+    pub t_final: Vec<f32>,
+    /// Every pixel's hits are here (false: the row outgrew its share of the budget, and the
+    /// backward re-runs its windows).
+    pub complete: bool,
+}
+
+/// Every pixel's blended hits of one forward pass (16 bytes a hit, at most about
+/// [`forward::RECORD_BUDGET_BYTES`]), kept for the backward. Buffers are reused when a record
+/// is handed back to [`render_recorded`].
+#[derive(Clone, Debug, Default)]
+pub struct PixelHitRecord {
+    pub(crate) rows: Vec<RowHits>,
+}
+
+impl PixelHitRecord {
+    /// Blended hits held.
+    pub fn hits(&self) -> usize {
+        self.rows.iter().map(|r| r.hits.len()).sum()
+    }
+    /// Rows of tiles whose hits did not fit the budget (their backward re-runs the windows).
+    pub fn rows_over_budget(&self) -> usize {
+        self.rows.iter().filter(|r| !r.complete).count()
+    }
+    /// Bytes held by the buffers (their capacity).
+    pub fn bytes(&self) -> usize {
+        self.rows
+            .iter()
+            .map(|r| {
+                r.hits.capacity() * std::mem::size_of::<RecordedHit>()
+                    + r.spans.capacity() * 8
+                    + r.t_final.capacity() * 4
+            })
+            .sum()
+    }
 }

@@ -586,3 +586,71 @@ fn tile_culling_drops_only_pairs_without_hits() {
     }
     assert!(dropped_total > 1000, "the cull dropped only {dropped_total} pairs");
 }
+
+/// The recorded forward (`render_recorded`) gives `render`'s outputs, and the backward that
+/// replays its hits gives bitwise the gradients of the backward that re-runs the windows: per
+/// window size, one- and two-sided, with features, an odd width (a lone last pixel of a pair),
+/// several tiles, and a record reused from a frame of another size.
+#[test]
+fn recorded_hits_replay_the_backward_exactly() {
+    let s = random_scene(300, 41, (0.03, 0.2), (0.1, 0.95));
+    let ch = 3;
+    let feats = random_features(s.len(), ch, 42);
+    let f = Some(Features { data: &feats, channels: ch });
+    let mut reuse = PixelHitRecord::default();
+    let cases = [
+        (1, false, (37, 29), usize::MAX),
+        (8, true, (37, 29), usize::MAX),
+        (32, false, (20, 45), usize::MAX),
+        (8, false, (37, 70), 0),
+    ];
+    for (window, two_sided, (w, h), budget) in cases {
+        let set = RasterSettings { window, two_sided, background: [0.2, 0.1, 0.4], ..Default::default() };
+        let cam = camera(w, h);
+        let px = (w * h) as usize;
+        let wts = weights(px, ch, 43);
+        // Some pixels without any gradient (the backward skips them).
+        let zero_some = |v: &mut Vec<f32>| v.iter_mut().step_by(5).for_each(|x| *x = 0.0);
+        let mut alpha = wts.alpha.clone();
+        zero_some(&mut alpha);
+        let grads = RenderGrads {
+            v_colour: wts.colour.clone(),
+            v_alpha: alpha,
+            v_depth: wts.depth.clone(),
+            v_median_depth: wts.median.clone(),
+            v_normal: wts.normal.clone(),
+            v_distortion: wts.distortion.clone(),
+            v_features: wts.features.clone(),
+        };
+        let (out_a, st_a) = render(&s, &cam, &set, f);
+        // Budget 0 here: one that the fuller half of the rows of tiles do not fit.
+        let budget = if budget > 0 {
+            budget
+        } else {
+            let (_, full) = render_recorded(&s, &cam, &set, f, PixelHitRecord::default());
+            let rows = &full.record.as_ref().unwrap().rows;
+            let mut per_row: Vec<usize> = rows.iter().map(|r| r.hits.len()).collect();
+            per_row.sort();
+            per_row[per_row.len() / 2] * std::mem::size_of::<super::RecordedHit>() * rows.len()
+        };
+        let (out_b, mut st_b) =
+            super::forward::render_recorded_with_budget(&s, &cam, &set, f, std::mem::take(&mut reuse), budget);
+        assert!(out_a == out_b, "window {window}: recorded forward differs");
+        assert!(st_a.record.is_none());
+        let rec = st_b.record.as_ref().unwrap();
+        let over = rec.rows_over_budget();
+        if budget == usize::MAX {
+            assert!(rec.hits() > px * 2 && over == 0, "window {window}: the test needs hits ({})", rec.hits());
+        } else {
+            assert!(over > 0 && over < rec.rows.len(), "budget {budget}: {over} of {} rows over", rec.rows.len());
+        }
+        let (mut ga, mut gb) = (s.zeros_like(), s.zeros_like());
+        let (mut fa, mut fb) = (vec![0.0; s.len() * ch], vec![0.0; s.len() * ch]);
+        let ba = render_backward(&s, &cam, &set, f, &st_a, &grads, &mut ga, Some(&mut fa));
+        let bb = render_backward(&s, &cam, &set, f, &st_b, &grads, &mut gb, Some(&mut fb));
+        assert!(ga == gb && fa == fb, "window {window}: replayed gradients differ");
+        assert!(ba.v_mean2d == bb.v_mean2d && ba.v_mean2d_norm == bb.v_mean2d_norm);
+        assert!(ga != s.zeros_like());
+        reuse = st_b.record.take().unwrap();
+    }
+}

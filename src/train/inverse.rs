@@ -393,6 +393,8 @@ struct Scratch {
     v_env_log: Vec<f32>,
     rc: RcScratch,
     ss_grads: Option<SplitSumGrads>,
+    /// The forward's per-pixel hits, replayed by the backward (buffers reused).
+    recorder: raster::HitRecorder,
 }
 
 fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
@@ -442,7 +444,7 @@ fn iterate(
         ..RasterSettings::default()
     };
     let features = Features { data: &sc.shading.features, channels: ch };
-    let (out, fwd) = raster::render(s, cam, &settings, Some(features));
+    let (out, mut fwd) = sc.recorder.render(s, cam, &settings, Some(features));
     let t2 = Instant::now();
     t.raster_forward += (t2 - t1).as_secs_f64();
 
@@ -536,6 +538,7 @@ fn iterate(
     sc.v_feat.clear();
     sc.v_feat.resize(s.len() * ch, 0.0);
     raster::render_backward(s, cam, &settings, Some(features), &fwd, &sc.grads, v_surfels, Some(&mut sc.v_feat));
+    sc.recorder.recycle(&mut fwd);
     let t4 = Instant::now();
     t.raster_backward += (t4 - t3).as_secs_f64();
 

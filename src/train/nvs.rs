@@ -284,6 +284,8 @@ struct Scratch {
     normal: NormalConsistency,
     init: InitPass,
     v_features: Vec<f32>,
+    /// The forward's per-pixel hits, replayed by the backward (buffers reused).
+    recorder: raster::HitRecorder,
 }
 
 /// Losses of one iteration (unweighted values).
@@ -343,7 +345,7 @@ fn iterate(
     let features = state.light.as_ref().map(|_| Features { data: &feature_rows, channels: pbr_init::CHANNELS });
     let ts = Instant::now();
     times.shading += (ts - t0).as_secs_f64();
-    let (out, fwd) = raster::render(&state.surfels, cam, &settings, features);
+    let (out, mut fwd) = scratch.recorder.render(&state.surfels, cam, &settings, features);
     let t1 = Instant::now();
     times.raster_forward += (t1 - ts).as_secs_f64();
 
@@ -430,6 +432,7 @@ fn iterate(
     if state.stats.len() == state.surfels.len() {
         state.stats.add_view(&bwd.v_mean2d, &fwd.radii);
     }
+    scratch.recorder.recycle(&mut fwd);
     let t3 = Instant::now();
     times.raster_backward += (t3 - t2).as_secs_f64();
     if let Some(light) = &state.light {

@@ -202,7 +202,7 @@ pub fn run(args: &RasterBenchArgs) -> anyhow::Result<()> {
                 let mut st = st;
                 if let Some(r) = st.record.take() {
                     record_mib = r.bytes() as f64 / (1 << 20) as f64;
-                    rows_over = r.rows_over_budget();
+                    rows_over = r.pixels_not_recorded();
                     record = r;
                 }
                 evals = st.evaluations;
@@ -217,7 +217,7 @@ pub fn run(args: &RasterBenchArgs) -> anyhow::Result<()> {
                 "forward_s": best_f, "forward_backward_s": best_fb, "evaluations": evals,
                 "forward_evals_per_s": evals as f64 / best_f, "fb_evals_per_s": evals as f64 / best_fb,
                 "sorting_error_weighted": sort.0, "sorting_error_pairs": sort.1, "peak_rss_mib": peak_rss_mib(),
-                "hit_record_mib": record_mib, "hit_record_rows_over_budget": rows_over, "backward_reruns_windows": args.rerun,
+                "hit_record_mib": record_mib, "hit_record_pixels_not_recorded": rows_over, "backward_reruns_windows": args.rerun,
             });
             println!(
                 "{:>5} {:>7} {:>5} {:>3} {:>10.1} {:>12.1} {:>10.1} {:>12.1} {:>9.0} {:>9.0} {:>12} {:>10.2e} {:>10.2e} {:>9.0}",

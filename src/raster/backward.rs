@@ -22,7 +22,7 @@ use super::forward::{TileData, composite_two_pixels, load16, splat_alpha, splat_
 use super::lanes;
 use super::project::{ProjGrad, SurfelGradSlots, project_backward_one};
 use super::tiles::split_by_offsets;
-use super::{BackwardOutput, Features, ForwardState, MAX_FEATURES, RasterSettings, RenderGrads, TILE};
+use super::{BackwardOutput, Features, ForwardState, MAX_FEATURES, NOT_RECORDED, RasterSettings, RenderGrads, TILE};
 use crate::camera::Camera;
 use crate::surfels::{SurfelGrads, Surfels};
 use rayon::prelude::*;
@@ -236,6 +236,7 @@ fn backward_tile_row(
     let y0 = ty * TILE;
     let y1 = (y0 + TILE).min(h);
     let has_f = nch > 0 && !grads.v_features.is_empty();
+    let row_record = state.record.as_ref().map(|r| &r.rows[ty as usize]);
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
         let (p0, p1) = (bins.offsets[t], bins.offsets[t + 1]);
@@ -267,37 +268,32 @@ fn backward_tile_row(
             }
             (!pg.is_zero()).then_some(pg)
         };
-        if let Some(row) = state.record.as_ref().map(|r| &r.rows[ty as usize]).filter(|r| r.complete) {
-            // Replay the forward's hits.
-            let h = &mut hits[0];
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let Some(pg) = pixel_grads(x, y) else { continue };
-                    let local = ((y - y0) * w + x) as usize;
-                    let (a, b) = row.spans[local];
-                    if a == b {
-                        continue;
-                    }
-                    h.len = 0;
-                    for rh in &row.hits[a as usize..b as usize] {
-                        h.push(rh.li as usize, rh.z, rh.alpha, rh.t);
-                    }
-                    h.pad();
-                    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
-                    pixel_backward(td, s, features, h, row.t_final[local], px, py, &pg, tile_rows, stride);
-                }
-            }
-            continue;
-        }
         for y in y0..y1 {
             // Pixels in pairs, as the forward composites them (`composite_two_pixels`).
             for x in (x0..x1).step_by(2) {
                 let mut todo: [Option<(u32, PixelGrads)>; 2] = [None, None];
                 let mut count = 0;
                 for xx in x..(x + 2).min(x1) {
-                    if let Some(pg) = pixel_grads(xx, y) {
-                        todo[count] = Some((xx, pg));
-                        count += 1;
+                    let Some(pg) = pixel_grads(xx, y) else { continue };
+                    // A recorded pixel replays the forward's hits; the others re-run the window.
+                    let local = ((y - y0) * w + xx) as usize;
+                    match row_record.map(|r| (r, r.spans[local])).filter(|&(_, span)| span != NOT_RECORDED) {
+                        Some((row, (a, b))) => {
+                            if a < b {
+                                let h = &mut hits[0];
+                                h.len = 0;
+                                for rh in &row.hits[a as usize..b as usize] {
+                                    h.push(rh.li as usize, rh.z, rh.alpha, rh.t);
+                                }
+                                h.pad();
+                                let (px, py) = (xx as f32 + 0.5, y as f32 + 0.5);
+                                pixel_backward(td, s, features, h, row.t_final[local], px, py, &pg, tile_rows, stride);
+                            }
+                        }
+                        None => {
+                            todo[count] = Some((xx, pg));
+                            count += 1;
+                        }
                     }
                 }
                 if count == 0 {

@@ -28,8 +28,8 @@
 use super::project::{self, Projected};
 use super::tiles::{self, TileBins};
 use super::{
-    Features, ForwardState, MAX_FEATURES, MAX_WINDOW, PixelHitRecord, RasterSettings, RecordedHit, RenderOutput,
-    RowHits, TILE,
+    Features, ForwardState, MAX_FEATURES, MAX_WINDOW, NOT_RECORDED, PixelHitRecord, RasterSettings, RecordedHit,
+    RenderOutput, RowHits, TILE,
 };
 use crate::camera::Camera;
 use crate::surfels::Surfels;
@@ -687,9 +687,9 @@ pub(crate) fn render_recorded_with_budget(
     render_impl(surfels, camera, settings, features, Some((reuse, budget_bytes)))
 }
 
-/// A hit record holds at most about this much (16 bytes a hit): a row of tiles that would
-/// need more than its share is not recorded and the backward re-runs its windows (same
-/// results). Training at 200² needs ~100 MiB; 100k surfels at 800² would need ~750 MiB.
+/// A hit record holds at most about this much (16 bytes a hit): once a row of tiles has used
+/// its share, its further pixels are not recorded and the backward re-runs their windows
+/// (same results). Training at 200² needs 25–110 MiB; 100k surfels at 800² would need ~750 MiB.
 pub const RECORD_BUDGET_BYTES: usize = 256 << 20;
 
 /// Renders a sequence of training frames with [`render_recorded`], reusing one record's
@@ -827,10 +827,9 @@ fn render_tile_row(
     let y1 = (y0 + TILE).min(h);
     if let Some((row, _, _)) = record.as_mut() {
         let px = ((y1 - y0) * w) as usize;
-        row.complete = true;
         row.hits.clear();
         row.spans.clear();
-        row.spans.resize(px, (0, 0));
+        row.spans.resize(px, NOT_RECORDED);
         row.t_final.clear();
         row.t_final.resize(px, 1.0);
     }
@@ -849,16 +848,7 @@ fn render_tile_row(
                 let pf = [(x as f32 + 0.5, y as f32 + 0.5), (x as f32 + 1.5, y as f32 + 0.5)];
                 let local = |x: u32| ((y - y0) * w + x) as usize;
                 // Over its share of the budget a row stops recording (at most a pair's hits over).
-                let recording = match record.as_mut() {
-                    Some((row, _, cap)) if row.complete => {
-                        if row.hits.len() > *cap {
-                            row.complete = false;
-                            row.hits.clear();
-                        }
-                        row.complete
-                    }
-                    _ => false,
-                };
+                let recording = matches!(record.as_ref(), Some((row, _, cap)) if row.hits.len() <= *cap);
                 let [(ta, eva), (tb, evb)] = match record.as_mut().filter(|_| recording) {
                     // Inlined so the sums stay in registers across blends.
                     None => composite_two_pixels(

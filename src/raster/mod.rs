@@ -201,17 +201,19 @@ pub(crate) struct RecordedHit {
 #[derive(Clone, Debug, Default)]
 pub(crate) struct RowHits {
     pub hits: Vec<RecordedHit>,
-    /// Per pixel of the row (index (y − y0)·width + x): its range in `hits`.
+    /// Per pixel of the row (index (y − y0)·width + x): its range in `hits`, or
+    /// [`NOT_RECORDED`] (the row had used up its share of the budget: the backward re-runs
+    /// that pixel's window).
     pub spans: Vec<(u32, u32)>,
     /// Per pixel: the final transmittance.
     pub t_final: Vec<f32>,
-    /// Every pixel's hits are here (false: the row outgrew its share of the budget, and the
-    /// backward re-runs its windows).
-    pub complete: bool,
 }
 
+pub(crate) const NOT_RECORDED: (u32, u32) = (u32::MAX, u32::MAX);
+
 /// Every pixel's blended hits of one forward pass (16 bytes a hit, at most about
-/// [`forward::RECORD_BUDGET_BYTES`]), kept for the backward. Buffers are reused when a record
+/// [`forward::RECORD_BUDGET_BYTES`]: pixels beyond a row's share are not recorded), kept for
+/// the backward. Buffers are reused when a record
 /// is handed back to [`render_recorded`].
 #[derive(Clone, Debug, Default)]
 pub struct PixelHitRecord {
@@ -223,19 +225,15 @@ impl PixelHitRecord {
     pub fn hits(&self) -> usize {
         self.rows.iter().map(|r| r.hits.len()).sum()
     }
-    /// Rows of tiles whose hits did not fit the budget (their backward re-runs the windows).
-    pub fn rows_over_budget(&self) -> usize {
-        self.rows.iter().filter(|r| !r.complete).count()
+    /// Pixels whose hits did not fit the budget (the backward re-runs their windows).
+    pub fn pixels_not_recorded(&self) -> usize {
+        self.rows.iter().map(|r| r.spans.iter().filter(|&&s| s == NOT_RECORDED).count()).sum()
     }
-    /// Bytes held by the buffers (their capacity).
+    /// Bytes in use (hits, spans, final transmittances).
     pub fn bytes(&self) -> usize {
         self.rows
             .iter()
-            .map(|r| {
-                r.hits.capacity() * std::mem::size_of::<RecordedHit>()
-                    + r.spans.capacity() * 8
-                    + r.t_final.capacity() * 4
-            })
+            .map(|r| r.hits.len() * std::mem::size_of::<RecordedHit>() + r.spans.len() * 8 + r.t_final.len() * 4)
             .sum()
     }
 }

@@ -623,7 +623,7 @@ fn recorded_hits_replay_the_backward_exactly() {
             v_features: wts.features.clone(),
         };
         let (out_a, st_a) = render(&s, &cam, &set, f);
-        // Budget 0 here: one that the fuller half of the rows of tiles do not fit.
+        // Budget 0 here: one that the fuller half of the rows of tiles do not fit entirely.
         let budget = if budget > 0 {
             budget
         } else {
@@ -638,11 +638,11 @@ fn recorded_hits_replay_the_backward_exactly() {
         assert!(out_a == out_b, "window {window}: recorded forward differs");
         assert!(st_a.record.is_none());
         let rec = st_b.record.as_ref().unwrap();
-        let over = rec.rows_over_budget();
+        let over = rec.pixels_not_recorded();
         if budget == usize::MAX {
             assert!(rec.hits() > px * 2 && over == 0, "window {window}: the test needs hits ({})", rec.hits());
         } else {
-            assert!(over > 0 && over < rec.rows.len(), "budget {budget}: {over} of {} rows over", rec.rows.len());
+            assert!(over > 0 && over < px / 2, "budget {budget}: {over} of {px} pixels not recorded");
         }
         let (mut ga, mut gb) = (s.zeros_like(), s.zeros_like());
         let (mut fa, mut fb) = (vec![0.0; s.len() * ch], vec![0.0; s.len() * ch]);

@@ -118,6 +118,10 @@ pub struct TrainConfig {
     pub lambda_normal: f32,
     #[arg(long, default_value_t = 7000)]
     pub normal_from: u32,
+    /// The depth the normal consistency of stages nvs and init differentiates, as 2DGS's
+    /// `depth_ratio`: (1 − r) × expected depth + r × median depth (0: expected, 1: median).
+    #[arg(long, default_value_t = 0.0)]
+    pub depth_ratio: f32,
     /// Mask (alpha BCE) weight.
     #[arg(long, default_value_t = 0.1)]
     pub lambda_mask: f32,
@@ -331,6 +335,9 @@ impl TrainConfig {
         if !(0.0..=1.0).contains(&self.lambda_dssim) {
             return bad("lambda_dssim", format!("{} is not in [0, 1]", self.lambda_dssim));
         }
+        if !(0.0..=1.0).contains(&self.depth_ratio) {
+            return bad("depth_ratio", format!("{} is not in [0, 1]", self.depth_ratio));
+        }
         for (key, v) in [
             ("lambda_dist", self.lambda_dist),
             ("lambda_normal", self.lambda_normal),
@@ -437,5 +444,7 @@ mod tests {
         assert!(
             TrainConfig { window: 0, ..TrainConfig::default() }.validate().unwrap_err().to_string().contains("window")
         );
+        let err = TrainConfig { depth_ratio: 1.5, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+        assert!(err.contains("depth_ratio"), "{err}");
     }
 }

@@ -78,6 +78,9 @@ pub struct NormalConsistency {
     n_depth: Vec<[f32; 3]>,
     v_dr: Vec<[f32; 3]>,
     v_dc: Vec<[f32; 3]>,
+    /// [`Self::loss_mixed_depth`]: the mixed depth and its gradient.
+    mixed: Vec<f32>,
+    v_mixed: Vec<f32>,
 }
 
 impl NormalConsistency {
@@ -88,6 +91,46 @@ impl NormalConsistency {
     /// Depth normals of the last call (before the `alpha` factor).
     pub fn depth_normals(&self) -> &[[f32; 3]] {
         &self.n_depth
+    }
+
+    /// [`Self::loss`] on 2DGS's surface depth (1 − r)·`expected` + r·`median` (r =
+    /// `depth_ratio` in [0, 1]); accumulates `weight · ∂L/∂depth` split by (1 − r, r) into
+    /// `v_expected` and `v_median`, which may be empty when their share is 0 (r = 1 or r = 0).
+    #[allow(clippy::too_many_arguments)]
+    pub fn loss_mixed_depth(
+        &mut self,
+        cam: &Camera,
+        (expected, median, ratio): (&[f32], &[f32], f32),
+        rend_normal: &[[f32; 3]],
+        alpha: Option<&[f32]>,
+        pixel_weights: Option<&[f32]>,
+        weight: f32,
+        (v_expected, v_median): (&mut [f32], &mut [f32]),
+        v_normal: &mut [[f32; 3]],
+    ) -> f32 {
+        let mut mixed = std::mem::take(&mut self.mixed);
+        let mut v_mixed = std::mem::take(&mut self.v_mixed);
+        let depth: &[f32] = if ratio == 0.0 {
+            expected
+        } else if ratio == 1.0 {
+            median
+        } else {
+            mixed.clear();
+            mixed.extend(expected.iter().zip(median).map(|(e, m)| (1.0 - ratio) * e + ratio * m));
+            &mixed
+        };
+        v_mixed.clear();
+        v_mixed.resize(depth.len(), 0.0);
+        let l = self.loss(cam, depth, rend_normal, alpha, pixel_weights, weight, &mut v_mixed, v_normal);
+        for (v, &d) in v_expected.iter_mut().zip(&v_mixed) {
+            *v += (1.0 - ratio) * d;
+        }
+        for (v, &d) in v_median.iter_mut().zip(&v_mixed) {
+            *v += ratio * d;
+        }
+        self.mixed = mixed;
+        self.v_mixed = v_mixed;
+        l
     }
 
     /// L = 1/N Σ w (1 − n_r · a n_d). `alpha`: optional detached factor on the depth normals
@@ -308,5 +351,77 @@ mod tests {
         }
         // Border pixels have zero depth normals, so no normal gradient there.
         assert_eq!(vn[0], [0.0; 3]);
+    }
+
+    /// The mixed-depth loss (2DGS `depth_ratio`): its gradients on the expected and the median
+    /// depth against central differences of the f64 reference on the mixed depth, for r = 0.3,
+    /// and r = 0 / 1 with the unused side empty.
+    #[test]
+    fn mixed_depth_gradients_match_finite_differences() {
+        let (w, h) = (11u32, 8u32);
+        let cam = camera(w, h);
+        let n = (w * h) as usize;
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(37);
+        let bumpy = |rng: &mut rand_pcg::Pcg64, k: f32| -> Vec<f32> {
+            (0..n)
+                .map(|i| {
+                    let (x, y) = ((i % w as usize) as f32, (i / w as usize) as f32);
+                    3.5 + 0.1 * (k * x).sin() + 0.05 * (0.9 * y).cos() + 0.05 * rng.random::<f32>()
+                })
+                .collect()
+        };
+        let (exp_d, med_d) = (bumpy(&mut rng, 0.7), bumpy(&mut rng, 0.4));
+        let nr: Vec<[f32; 3]> =
+            (0..n).map(|_| [rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5, rng.random::<f32>() - 0.5]).collect();
+        let alpha: Vec<f32> = (0..n).map(|_| 0.5 + 0.5 * rng.random::<f32>()).collect();
+        let wts: Vec<f32> = (0..n).map(|_| rng.random::<f32>()).collect();
+        let n64: Vec<[f64; 3]> = nr.iter().map(|p| p.map(|v| v as f64)).collect();
+        let a64: Vec<f64> = alpha.iter().map(|&v| v as f64).collect();
+        let w64: Vec<f64> = wts.iter().map(|&v| v as f64).collect();
+        let weight = 0.8;
+        for ratio in [0.3f32, 0.0, 1.0] {
+            let mut nc = NormalConsistency::new();
+            let mut ve = if ratio < 1.0 { vec![0.0f32; n] } else { vec![] };
+            let mut vm = if ratio > 0.0 { vec![0.0f32; n] } else { vec![] };
+            let mut vn = vec![[0.0f32; 3]; n];
+            let l = nc.loss_mixed_depth(
+                &cam,
+                (&exp_d, &med_d, ratio),
+                &nr,
+                Some(&alpha),
+                Some(&wts),
+                weight,
+                (&mut ve, &mut vm),
+                &mut vn,
+            );
+            let r = ratio as f64;
+            let loss64 = |e: &[f64], m: &[f64]| {
+                let d: Vec<f64> = e.iter().zip(m).map(|(e, m)| (1.0 - r) * e + r * m).collect();
+                reference(&cam, &d, &n64, &a64, &w64)
+            };
+            let e64: Vec<f64> = exp_d.iter().map(|&v| v as f64).collect();
+            let m64: Vec<f64> = med_d.iter().map(|&v| v as f64).collect();
+            assert!((l as f64 - loss64(&e64, &m64)).abs() < 1e-5, "ratio {ratio}: loss");
+            let hs = 1e-6;
+            let scale = ve.iter().chain(&vm).fold(0.0f32, |a, b| a.max(b.abs())) as f64;
+            for (side, grads) in [(0, &ve), (1, &vm)] {
+                for (i, &g) in grads.iter().enumerate() {
+                    let (mut ep, mut mp, mut em, mut mm) = (e64.clone(), m64.clone(), e64.clone(), m64.clone());
+                    if side == 0 {
+                        ep[i] += hs;
+                        em[i] -= hs;
+                    } else {
+                        mp[i] += hs;
+                        mm[i] -= hs;
+                    }
+                    let fd = weight as f64 * (loss64(&ep, &mp) - loss64(&em, &mm)) / (2.0 * hs);
+                    assert!(
+                        (fd - g as f64).abs() < 2e-3 * scale + 1e-7,
+                        "ratio {ratio}, side {side}, pixel {i}: fd {fd:e} vs {g:e}"
+                    );
+                }
+            }
+            assert!(scale > 1e-4, "ratio {ratio}: no depth gradient");
+        }
     }
 }

@@ -1,7 +1,8 @@
 //! Backward rasterisation, exact for the order the forward pass used.
 //!
 //! Per pixel the forward's blended hits in blend order with their T_before are replayed from
-//! its record (`render_recorded`) or listed by re-running its window (`composite_two_pixels`); the list is then walked back to front, 16 hits at a time (SIMD
+//! its record (`render_recorded`) or listed by re-running its window (`composite_two_pixels`);
+//! the list is then walked back to front, 16 hits at a time (SIMD
 //! across hits: each hit's terms are gathered from its candidate, the suffix sums below are
 //! in-register scans, and the 16 gradient rows are written through a transpose). With
 //! every output written as O = Σ_j w_j q_j + T_n b (w_j = α_j T_j), ∂O/∂α_j = T_j q_j −

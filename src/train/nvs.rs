@@ -286,9 +286,6 @@ struct Scratch {
     v_features: Vec<f32>,
     /// The forward's per-pixel hits, replayed by the backward (buffers reused).
     recorder: raster::HitRecorder,
-    /// The normal consistency's depth (when it mixes expected and median) and its gradient.
-    surface_depth: Vec<f32>,
-    v_surface_depth: Vec<f32>,
 }
 
 /// Losses of one iteration (unweighted values).
@@ -406,35 +403,17 @@ fn iterate(
         losses.total += cfg.lambda_dist * losses.distortion;
     }
     if use_normal {
-        // The surface depth (1 − r)·expected + r·median; its gradient is split back by r.
-        let r = cfg.depth_ratio;
-        let depth: &[f32] = if r == 0.0 {
-            &out.depth
-        } else if r == 1.0 {
-            &out.median_depth
-        } else {
-            scratch.surface_depth.clear();
-            scratch.surface_depth.extend(out.depth.iter().zip(&out.median_depth).map(|(e, m)| (1.0 - r) * e + r * m));
-            &scratch.surface_depth
-        };
-        scratch.v_surface_depth.clear();
-        scratch.v_surface_depth.resize(n, 0.0);
-        losses.normal = scratch.normal.loss(
+        // 2DGS's surface depth (1 − r)·expected + r·median.
+        losses.normal = scratch.normal.loss_mixed_depth(
             cam,
-            depth,
+            (&out.depth, &out.median_depth, cfg.depth_ratio),
             &out.normal,
             Some(&out.alpha),
             Some(alpha),
             cfg.lambda_normal,
-            &mut scratch.v_surface_depth,
+            (&mut g.v_depth, &mut g.v_median_depth),
             &mut g.v_normal,
         );
-        for (v, &d) in g.v_depth.iter_mut().zip(&scratch.v_surface_depth) {
-            *v += (1.0 - r) * d;
-        }
-        for (v, &d) in g.v_median_depth.iter_mut().zip(&scratch.v_surface_depth) {
-            *v += r * d;
-        }
         losses.total += cfg.lambda_normal * losses.normal;
     }
     if state.light.is_some() {

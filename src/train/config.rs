@@ -91,8 +91,14 @@ pub struct TrainConfig {
     pub lr_position_init: f32,
     #[arg(long, default_value_t = 1.6e-6)]
     pub lr_position_final: f32,
+    /// SH learning rate: the DC term; the view-dependent terms in the nvs stage take 1/20 of it.
     #[arg(long, default_value_t = 2.5e-3)]
     pub lr_sh: f32,
+    /// Learning rate of the SH's view-dependent terms in the inverse stage [lr_sh / 20]: the
+    /// radiometric consistency reshapes a surfel's radiance in directions no camera saw
+    /// through these terms alone.
+    #[arg(long, default_value_t = 1.25e-4)]
+    pub lr_sh_rest_inverse: f32,
     #[arg(long, default_value_t = 0.05)]
     pub lr_opacity: f32,
     #[arg(long, default_value_t = 5e-3)]
@@ -229,6 +235,11 @@ pub struct TrainConfig {
     /// explains the shading that varies with the normal and the shadows (0 = off, as published).
     #[arg(long, default_value_t = 0)]
     pub light_warmup: u32,
+    /// Albedo–light gauge: every this many iterations a 1-D search over s of the PBR image
+    /// loss (3 training views) rescales albedo × s and env ÷ s, the direction the gradient
+    /// hardly moves along (see `train::gauge`; not in the published method). 0 = off.
+    #[arg(long, default_value_t = 0)]
+    pub gauge_every: u32,
     /// Env map height H (width 2H) [64].
     #[arg(long, default_value_t = 64)]
     pub env_height: usize,
@@ -343,6 +354,7 @@ impl TrainConfig {
             ("lambda_normal", self.lambda_normal),
             ("lambda_mask", self.lambda_mask),
             ("lr_sh", self.lr_sh),
+            ("lr_sh_rest_inverse", self.lr_sh_rest_inverse),
             ("lr_opacity", self.lr_opacity),
             ("lr_scale", self.lr_scale),
             ("lr_rotation", self.lr_rotation),

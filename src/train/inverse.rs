@@ -95,7 +95,7 @@ fn learning_rates(cfg: &TrainConfig) -> LearningRates {
         quats: cfg.lr_rotation * g,
         opacity_logits: cfg.lr_opacity * g,
         sh_dc: cfg.lr_sh,
-        sh_rest: cfg.lr_sh / 20.0,
+        sh_rest: cfg.lr_sh_rest_inverse,
         albedo_logits: cfg.lr_albedo,
         roughness_logits: cfg.lr_roughness,
     }
@@ -370,6 +370,8 @@ pub struct InverseTimes {
     pub optimiser: f64,
     pub tracer_refit: f64,
     pub cache_refresh: f64,
+    /// The albedo–light gauge fits (`gauge_every`).
+    pub gauge: f64,
 }
 
 #[derive(Default)]
@@ -770,6 +772,15 @@ pub fn run_until(
                 state.traced_at[i] = it;
             }
         }
+        if cfg.gauge_every > 0 && it % cfg.gauge_every == 0 && it < cfg.inverse_iters {
+            let t = Instant::now();
+            let g = super::gauge::fit(cfg, &state, &images);
+            super::gauge::apply(&mut state, g.scale);
+            times.gauge += t.elapsed().as_secs_f64();
+            let line = serde_json::json!({ "stage": "inverse", "iteration": it, "gauge": g });
+            writeln!(metrics, "{line}").context("writing metrics_inverse.jsonl")?;
+            tracing::debug!("inverse {it}: gauge {g:?}");
+        }
         let t_fit = Instant::now();
         tracer.refit(&state.surfels);
         if tracer.needs_rebuild() {
@@ -838,7 +849,7 @@ pub fn run_until(
             densify: 0.0,
             optimiser: times.optimiser,
             shading: times.shading + times.shading_backward + times.consistency,
-            other: times.tracer_refit + times.cache_refresh,
+            other: times.tracer_refit + times.cache_refresh + times.gauge,
         },
         interrupted,
     })

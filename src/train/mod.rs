@@ -3,6 +3,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod consistency;
 pub mod densify;
+pub mod gauge;
 pub mod init;
 pub mod interrupt;
 pub mod inverse;

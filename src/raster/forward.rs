@@ -64,11 +64,6 @@ pub(crate) struct TileData {
     /// What the forward blends per candidate, one 16-lane row each (`load_blend_rows`):
     /// colour, normal, 1 (for Σ w), then up to `ROW_FEATURES` feature channels.
     pub blend_rows: Vec<f32x16>,
-    /// Pixel bounding box per candidate (see `Projected::pbox`).
-    pub pbox: Vec<[u32; 4]>,
-    /// For a part of a tile ([`load_part`](Self::load_part)): each candidate's index in the
-    /// whole tile's list.
-    pub orig: Vec<u32>,
 }
 
 /// Lanes of a blend row: colour 0..3, normal 3..6, 1 at 6, features from 7.
@@ -121,46 +116,6 @@ impl TileData {
         }
         self.normal.clear();
         self.normal.extend(ids.iter().map(|&i| p.normal[i as usize]));
-        self.pbox.clear();
-        self.pbox.extend(ids.iter().map(|&i| p.pbox[i as usize]));
-    }
-
-    /// The candidates of `tile` (loaded with blend rows) whose pixel box, grown by a pixel
-    /// for rounding, meets the pixel columns `xs` and rows `ys` (half-open), in the tile's
-    /// order. The others evaluate to α < α_min at every pixel there, so compositing a pixel of
-    /// the part over this list blends the same hits in the same order as over the whole list.
-    ///
-    /// Returns false, loading nothing, when the part would keep more than 3/4 of the tile's
-    /// candidates: gathering them would cost more than evaluating the few others (scenes of
-    /// large surfels), so the caller composites over the whole tile.
-    pub fn load_part(&mut self, tile: &TileData, xs: (u32, u32), ys: (u32, u32)) -> bool {
-        self.orig.clear();
-        self.orig.extend((0..tile.n as u32).filter(|&li| {
-            let b = tile.pbox[li as usize];
-            b[0] < xs.1 + 1 && b[2] + 1 >= xs.0 && b[1] < ys.1 + 1 && b[3] + 1 >= ys.0
-        }));
-        if 4 * self.orig.len() > 3 * tile.n {
-            return false;
-        }
-        self.n = self.orig.len();
-        let padded = self.n.div_ceil(16) * 16;
-        macro_rules! gather {
-            ($($field:ident),*) => {$(
-                self.$field.clear();
-                self.$field.extend(self.orig.iter().map(|&li| tile.$field[li as usize]));
-            )*};
-        }
-        gather!(ids, blend_rows);
-        macro_rules! gather_padded {
-            ($pad:expr; $($field:ident),*) => {$(
-                self.$field.clear();
-                self.$field.extend(self.orig.iter().map(|&li| tile.$field[li as usize]));
-                self.$field.resize(padded, $pad);
-            )*};
-        }
-        gather_padded!(0.0; tux, tuy, tuz, tvx, tvy, tvz, twx, twy, twz, mx, my, op);
-        gather_padded!(f32::NEG_INFINITY; rho_max);
-        true
     }
 
     /// Fill `blend_rows` (after `load`): a hit is then blended with one 16-lane multiply-add.
@@ -795,7 +750,7 @@ fn render_impl(
                 chunks
                     .zip(rec.rows.par_iter_mut())
                     .map_init(
-                        || (TileScratch::default(), Vec::new()),
+                        || (TileData::default(), Vec::new()),
                         |(td, pending), ((ty, chunk), row)| {
                             let rec = Some((row, pending, cap));
                             render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, rec)
@@ -804,7 +759,7 @@ fn render_impl(
                     .sum()
             }
             None => chunks
-                .map_init(TileScratch::default, |td, (ty, chunk)| {
+                .map_init(TileData::default, |td, (ty, chunk)| {
                     render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, None)
                 })
                 .sum(),
@@ -858,7 +813,7 @@ fn render_tile_row(
     ty: u32,
     chunk: &mut [f32],
     stride: usize,
-    scratch: &mut TileScratch,
+    td: &mut TileData,
     // The row's hit record, a scratch list for the second pixel of a pair (whose blends
     // interleave with the first's) and the row's share of the record budget.
     mut record: Option<(&mut RowHits, &mut Vec<RecordedHit>, usize)>,
@@ -881,96 +836,74 @@ fn render_tile_row(
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
-        let TileScratch { tile, part } = scratch;
-        tile.load(proj, ids, s.alpha_min);
-        tile.load_blend_rows(features);
+        td.load(proj, ids, s.alpha_min);
+        td.load_blend_rows(features);
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
-        // The tile in PART × PART parts, each over the candidates its pixels can hit.
-        for (qx0, qy0) in (0..TILE / PART).flat_map(|j| (0..TILE / PART).map(move |i| (x0 + i * PART, y0 + j * PART))) {
-            let (qx1, qy1) = ((qx0 + PART).min(x1), (qy0 + PART).min(y1));
-            if qx0 >= qx1 || qy0 >= qy1 {
-                continue;
-            }
-            // The list composited and, for a part, each entry's index in the tile's list.
-            let (td, orig): (&TileData, Option<&[u32]>) =
-                if part.load_part(tile, (qx0, qx1), (qy0, qy1)) { (part, Some(&part.orig)) } else { (tile, None) };
-            let tile_index = |li: usize| orig.map_or(li as u32, |o| o[li]);
-            for y in qy0..qy1 {
-                // Pixels in pairs (see `composite_two_pixels`); a lone last one when the part's width is odd.
-                for x in (qx0..qx1).step_by(2) {
-                    let two = x + 1 < qx1;
-                    let (mut sa, mut sb) = (PixelSums::default(), PixelSums::default());
-                    let pf = [(x as f32 + 0.5, y as f32 + 0.5), (x as f32 + 1.5, y as f32 + 0.5)];
-                    let local = |x: u32| ((y - y0) * w + x) as usize;
-                    // Over its share of the budget a row stops recording (at most a pair's hits over).
-                    let recording = matches!(record.as_ref(), Some((row, _, cap)) if row.hits.len() <= *cap);
-                    let [(ta, eva), (tb, evb)] = match record.as_mut().filter(|_| recording) {
-                        // Inlined so the sums stay in registers across blends.
-                        None => composite_two_pixels(
+        for y in y0..y1 {
+            // Pixels in pairs (see `composite_two_pixels`); a lone last one when x1 − x0 is odd.
+            for x in (x0..x1).step_by(2) {
+                let two = x + 1 < x1;
+                let (mut sa, mut sb) = (PixelSums::default(), PixelSums::default());
+                let pf = [(x as f32 + 0.5, y as f32 + 0.5), (x as f32 + 1.5, y as f32 + 0.5)];
+                let local = |x: u32| ((y - y0) * w + x) as usize;
+                // Over its share of the budget a row stops recording (at most a pair's hits over).
+                let recording = matches!(record.as_ref(), Some((row, _, cap)) if row.hits.len() <= *cap);
+                let [(ta, eva), (tb, evb)] = match record.as_mut().filter(|_| recording) {
+                    // Inlined so the sums stay in registers across blends.
+                    None => composite_two_pixels(
+                        td,
+                        pf,
+                        two,
+                        s,
+                        k,
+                        #[inline(always)]
+                        |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
+                        #[inline(always)]
+                        |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
+                    ),
+                    Some((row, pending, _)) => {
+                        let start_a = row.hits.len() as u32;
+                        pending.clear();
+                        let res = composite_two_pixels(
                             td,
                             pf,
                             two,
                             s,
                             k,
                             #[inline(always)]
-                            |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
+                            |li, z, alpha, t| {
+                                sa.blend(td, s, features, li, z, alpha, t);
+                                row.hits.push(RecordedHit { li: li as u32, z, alpha, t });
+                            },
                             #[inline(always)]
-                            |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
-                        ),
-                        Some((row, pending, _)) => {
-                            let start_a = row.hits.len() as u32;
-                            pending.clear();
-                            let res = composite_two_pixels(
-                                td,
-                                pf,
-                                two,
-                                s,
-                                k,
-                                #[inline(always)]
-                                |li, z, alpha, t| {
-                                    sa.blend(td, s, features, li, z, alpha, t);
-                                    row.hits.push(RecordedHit { li: tile_index(li), z, alpha, t });
-                                },
-                                #[inline(always)]
-                                |li, z, alpha, t| {
-                                    sb.blend(td, s, features, li, z, alpha, t);
-                                    pending.push(RecordedHit { li: tile_index(li), z, alpha, t });
-                                },
-                            );
-                            let end_a = row.hits.len() as u32;
-                            row.spans[local(x)] = (start_a, end_a);
-                            row.t_final[local(x)] = res[0].0;
-                            if two {
-                                row.hits.extend_from_slice(pending);
-                                row.spans[local(x + 1)] = (end_a, row.hits.len() as u32);
-                                row.t_final[local(x + 1)] = res[1].0;
-                            }
-                            res
+                            |li, z, alpha, t| {
+                                sb.blend(td, s, features, li, z, alpha, t);
+                                pending.push(RecordedHit { li: li as u32, z, alpha, t });
+                            },
+                        );
+                        let end_a = row.hits.len() as u32;
+                        row.spans[local(x)] = (start_a, end_a);
+                        row.t_final[local(x)] = res[0].0;
+                        if two {
+                            row.hits.extend_from_slice(pending);
+                            row.spans[local(x + 1)] = (end_a, row.hits.len() as u32);
+                            row.t_final[local(x + 1)] = res[1].0;
                         }
-                    };
-                    let at = |x: u32| local(x) * stride;
-                    sa.write(&mut chunk[at(x)..][..stride], ta, s, nch);
-                    evals += eva as u64;
-                    if two {
-                        sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch);
-                        evals += evb as u64;
+                        res
                     }
+                };
+                let at = |x: u32| local(x) * stride;
+                sa.write(&mut chunk[at(x)..][..stride], ta, s, nch);
+                evals += eva as u64;
+                if two {
+                    sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch);
+                    evals += evb as u64;
                 }
             }
         }
     }
     evals
-}
-
-/// Side of the square parts of a tile that get their own candidate lists.
-const PART: u32 = 8;
-
-/// A rendering thread's tile lists: the whole tile's and one part's.
-#[derive(Default)]
-struct TileScratch {
-    tile: TileData,
-    part: TileData,
 }
 
 /// Sorting error of the blend order (for `radiogs bench raster`), over every `step`-th pixel in

@@ -43,9 +43,6 @@ pub struct Projected {
     pub depth: Vec<f32>,
     /// Larger half-extent of the pixel bounding box (0 = culled).
     pub radius: Vec<f32>,
-    /// Pixel bounding box [x0, y0, x1, y1] (inclusive) of the centres the α ≥ α_min region
-    /// can reach: the forward skips a candidate in the parts of a tile its box misses.
-    pub pbox: Vec<[u32; 4]>,
 }
 
 struct One {
@@ -60,7 +57,6 @@ struct One {
     rect: [u32; 4],
     depth: f32,
     radius: f32,
-    pbox: [u32; 4],
 }
 
 const CULLED: [u32; 4] = [1, 1, 0, 0];
@@ -78,7 +74,6 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
         rect: CULLED,
         depth: 0.0,
         radius: 0.0,
-        pbox: CULLED,
     };
     let mu = Vec3::from(s.means[i]);
     let c = cam.rotation * mu + cam.translation;
@@ -145,7 +140,6 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
     }
     let t = TILE as f32;
     out.rect = [(px0 / t) as u32, (py0 / t) as u32, (px1 / t) as u32, (py1 / t) as u32];
-    out.pbox = [px0 as u32, py0 as u32, px1 as u32, py1 as u32];
     out.radius = (0.5 * (x1 - x0)).max(0.5 * (y1 - y0)).min(1e9).max(0.5);
     out.tu = tu;
     out.tv = tv;
@@ -184,7 +178,6 @@ pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) ->
         p.rect.push(o.rect);
         p.depth.push(o.depth);
         p.radius.push(o.radius);
-        p.pbox.push(o.pbox);
     }
     p
 }

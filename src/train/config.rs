@@ -237,8 +237,10 @@ pub struct TrainConfig {
     pub light_warmup: u32,
     /// Albedo–light gauge: every this many iterations a 1-D search over s of the PBR image
     /// loss (3 training views) rescales albedo × s and env ÷ s, the direction the gradient
-    /// hardly moves along (see `train::gauge`; not in the published method). 0 = off.
-    #[arg(long, default_value_t = 0)]
+    /// hardly moves along (see `train::gauge`; not in the published method; measured in
+    /// BENCHMARKS.md, session 13). 0 = off; off as well when the light or the albedo is held
+    /// (`lr_env` or `lr_albedo` 0).
+    #[arg(long, default_value_t = 100)]
     pub gauge_every: u32,
     /// Env map height H (width 2H) [64].
     #[arg(long, default_value_t = 64)]

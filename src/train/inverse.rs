@@ -772,7 +772,8 @@ pub fn run_until(
                 state.traced_at[i] = it;
             }
         }
-        if cfg.gauge_every > 0 && it % cfg.gauge_every == 0 && it < cfg.inverse_iters {
+        let gauge = cfg.gauge_every > 0 && cfg.lr_env > 0.0 && cfg.lr_albedo > 0.0;
+        if gauge && it % cfg.gauge_every == 0 && it < cfg.inverse_iters {
             let t = Instant::now();
             let g = super::gauge::fit(cfg, &state, &images);
             super::gauge::apply(&mut state, g.scale);

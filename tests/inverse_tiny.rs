@@ -35,36 +35,46 @@ fn plane() -> Surfels {
     s
 }
 
+/// Render `cameras` of `scene` over black into `dir` as a Blender-layout dataset (the same frames
+/// for train and test). The straight colour is chosen so that the loss's sRGB composite over
+/// black (c·α) equals the PBR render's (linear composite, then encoded), also at partly covered
+/// pixels.
+fn write_views(dir: &Path, scene: &PbrScene, cameras: &[Camera], angle: f32) {
+    let mut frames = Vec::new();
+    for cam in cameras {
+        let img = scene.render(cam, [0.0; 3]);
+        let mut out = Image::new(cam.width, cam.height, 4);
+        for (i, px) in out.data.chunks_exact_mut(4).enumerate() {
+            let a = img.alpha[i];
+            for c in 0..3 {
+                px[c] = if a > 1e-4 { (img.pbr[i][c] / a).min(1.0) } else { 0.0 };
+            }
+            px[3] = a;
+        }
+        write_image(&dir.join(format!("train/{}.png", cam.name)), &out).unwrap();
+        frames.push(serde_json::json!({
+            "file_path": format!("./train/{}", cam.name), "transform_matrix": cam.to_blender_rows()
+        }));
+    }
+    let json = serde_json::json!({"camera_angle_x": angle, "frames": frames});
+    std::fs::write(dir.join("transforms_train.json"), json.to_string()).unwrap();
+    std::fs::write(dir.join("transforms_test.json"), json.to_string()).unwrap();
+}
+
 /// Four views of the plane lit by the constant env, rendered by the PBR path.
 fn make_dataset(dir: &Path) -> Surfels {
     let gt = plane();
     let env = EnvMap::constant(32, 16, [LIGHT; 3]);
     let scene = PbrScene::new(gt.clone(), env, 64, radiogs::shade::incident::RayStart::offset_only(1e-3), 8, 1, 1);
     let angle = 0.9f32;
-    let mut frames = Vec::new();
-    for k in 0..4 {
-        let a = k as f32 * std::f32::consts::FRAC_PI_2 + 0.3;
-        let eye = glam::Vec3::new(0.9 * a.cos(), 0.9 * a.sin(), 1.6);
-        let cam = Camera::look_at(format!("r_{k}"), eye, glam::Vec3::ZERO, 32, 32, angle);
-        let img = scene.render(&cam, [0.0; 3]);
-        let mut out = Image::new(32, 32, 4);
-        for (i, px) in out.data.chunks_exact_mut(4).enumerate() {
-            let a = img.alpha[i];
-            for c in 0..3 {
-                // Straight alpha from the render over black (sRGB values: un-premultiply in linear).
-                let lin = radiogs::io::image::srgb_to_linear(img.pbr[i][c]);
-                px[c] = if a > 1e-4 { radiogs::io::image::linear_to_srgb(lin / a) } else { 0.0 };
-            }
-            px[3] = a;
-        }
-        write_image(&dir.join(format!("train/r_{k}.png")), &out).unwrap();
-        frames.push(
-            serde_json::json!({"file_path": format!("./train/r_{k}"), "transform_matrix": cam.to_blender_rows()}),
-        );
-    }
-    let json = serde_json::json!({"camera_angle_x": angle, "frames": frames});
-    std::fs::write(dir.join("transforms_train.json"), json.to_string()).unwrap();
-    std::fs::write(dir.join("transforms_test.json"), json.to_string()).unwrap();
+    let cameras: Vec<Camera> = (0..4)
+        .map(|k| {
+            let a = k as f32 * std::f32::consts::FRAC_PI_2 + 0.3;
+            let eye = glam::Vec3::new(0.9 * a.cos(), 0.9 * a.sin(), 1.6);
+            Camera::look_at(format!("r_{k}"), eye, glam::Vec3::ZERO, 32, 32, angle)
+        })
+        .collect();
+    write_views(dir, &scene, &cameras, angle);
     gt
 }
 
@@ -301,30 +311,14 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
     let data = temp_dir("gauge-data");
     let scene = PbrScene::new(gt.clone(), env, 64, start, 8, 1, 1);
     let angle = 0.9f32;
-    let mut frames = Vec::new();
-    for k in 0..4 {
-        let a = -0.8 + 0.55 * k as f32;
-        let eye = glam::Vec3::new(2.2 * a.cos(), 2.2 * a.sin(), 1.5);
-        let cam = Camera::look_at(format!("r_{k}"), eye, glam::Vec3::new(-0.2, 0.0, 0.2), 64, 64, angle);
-        let img = scene.render(&cam, [0.0; 3]);
-        let mut out = Image::new(64, 64, 4);
-        for (i, px) in out.data.chunks_exact_mut(4).enumerate() {
-            let a = img.alpha[i];
-            // Straight colour such that the loss's sRGB composite over black (c·α) is the
-            // PBR render's (linear composite, then encoded), also at the partly covered pixels.
-            for c in 0..3 {
-                px[c] = if a > 1e-4 { (img.pbr[i][c] / a).min(1.0) } else { 0.0 };
-            }
-            px[3] = a;
-        }
-        write_image(&data.join(format!("train/r_{k}.png")), &out).unwrap();
-        frames.push(
-            serde_json::json!({"file_path": format!("./train/r_{k}"), "transform_matrix": cam.to_blender_rows()}),
-        );
-    }
-    let json = serde_json::json!({"camera_angle_x": angle, "frames": frames});
-    std::fs::write(data.join("transforms_train.json"), json.to_string()).unwrap();
-    std::fs::write(data.join("transforms_test.json"), json.to_string()).unwrap();
+    let cameras: Vec<Camera> = (0..4)
+        .map(|k| {
+            let a = -0.8 + 0.55 * k as f32;
+            let eye = glam::Vec3::new(2.2 * a.cos(), 2.2 * a.sin(), 1.5);
+            Camera::look_at(format!("r_{k}"), eye, glam::Vec3::new(-0.2, 0.0, 0.2), 64, 64, angle)
+        })
+        .collect();
+    write_views(&data, &scene, &cameras, angle);
     let dataset = Dataset::open(&data).unwrap();
     let run = temp_dir("gauge-run");
     let mut c = Checkpoint { meta: serde_json::json!({"stage": "nvs", "iteration": 1}), ..Default::default() };

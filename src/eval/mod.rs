@@ -67,8 +67,7 @@ pub fn load_run_config(run: &Path) -> anyhow::Result<TrainConfig> {
         return Ok(TrainConfig::default());
     }
     let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let mut cfg: TrainConfig =
-        toml::from_str(&text).map_err(|e| crate::Error::format(&path, "TOML", e.message().to_string()))?;
+    let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| crate::train::config::toml_error(&path, &text, &e))?;
     // After the inverse stage the surfels are oriented (with flipped twins where a wall is
     // seen from both sides) and must be drawn with back faces culled.
     if run.join("envmap.exr").is_file() {

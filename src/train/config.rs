@@ -318,8 +318,7 @@ impl TrainConfig {
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
         let Some(path) = &cli.config else { return Ok(cli.clone()) };
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let from_file: TrainConfig =
-            toml::from_str(&text).map_err(|e| Error::format(path, "TOML", e.message().to_string()))?;
+        let from_file: TrainConfig = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
         let mut merged = toml::Value::try_from(&from_file).map_err(|e| Error::invalid("config", e.to_string()))?;
         let cli_value = toml::Value::try_from(cli).map_err(|e| Error::invalid("config", e.to_string()))?;
         if let (Some(table), Some(cli_table)) = (merged.as_table_mut(), cli_value.as_table()) {
@@ -431,9 +430,29 @@ impl TrainConfig {
     }
 }
 
+/// A TOML error of `path` naming the line (and so the setting) it is about.
+pub(crate) fn toml_error(path: &std::path::Path, text: &str, e: &toml::de::Error) -> Error {
+    let at = e.span().map(|span| {
+        let line_no = text[..span.start.min(text.len())].matches('\n').count() + 1;
+        let line = text.lines().nth(line_no - 1).unwrap_or("").trim();
+        format!("line {line_no} (`{line}`): ")
+    });
+    Error::format(path, "TOML", format!("{}{}", at.unwrap_or_default(), e.message()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A bad value in a settings file names the file and its line, so the setting.
+    #[test]
+    fn toml_errors_name_the_line_of_the_setting() {
+        let text = "iters = 10\ngauge_every = \"often\"\n";
+        let e = toml::from_str::<TrainConfig>(text).unwrap_err();
+        let msg = toml_error(std::path::Path::new("run/config.toml"), text, &e).to_string();
+        assert!(msg.contains("run/config.toml"), "{msg}");
+        assert!(msg.contains("line 2 (`gauge_every = \"often\"`)"), "{msg}");
+    }
 
     #[test]
     fn defaults_round_trip_through_toml_and_file_overrides_apply() {

@@ -12,6 +12,8 @@ pub mod env_prior;
 pub mod l1;
 pub mod mask;
 pub mod normal_consistency;
+pub mod normal_dispersion;
+pub mod opacity_entropy;
 pub mod smoothness;
 pub mod ssim;
 
@@ -19,6 +21,8 @@ pub use env_prior::{env_tv, white_light_prior};
 pub use l1::{l1_gray, l1_rgb};
 pub use mask::{mask_bce, mask_entropy};
 pub use normal_consistency::{NormalConsistency, depth_to_normal};
+pub use normal_dispersion::normal_dispersion;
+pub use opacity_entropy::opacity_entropy;
 pub use smoothness::EdgeAwareSmoothness;
 pub use ssim::{Ssim, psnr, psnr_masked, ssim_eval};
 

@@ -124,6 +124,12 @@ pub struct TrainConfig {
     pub lambda_normal: f32,
     #[arg(long, default_value_t = 7000)]
     pub normal_from: u32,
+    /// Weight of the spread of the normals blended into each pixel, α − |Σ w n|²/α (stages nvs
+    /// and init, from `normal_from`; 0 = off): 2DGS's normal consistency only sees the blended
+    /// normal, so surfels tilted both ways about a flat surface go unpunished, while the PBR
+    /// shades each surfel with its own normal.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_normal_dispersion: f32,
     /// The depth the normal consistency of stages nvs and init differentiates, as 2DGS's
     /// `depth_ratio`: (1 − r) × expected depth + r × median depth (0: expected, 1: median).
     #[arg(long, default_value_t = 0.0)]
@@ -131,6 +137,14 @@ pub struct TrainConfig {
     /// Mask (alpha BCE) weight.
     #[arg(long, default_value_t = 0.1)]
     pub lambda_mask: f32,
+    /// Binary-entropy regulariser on the surfel opacities (stages nvs and init; 0 = off) and
+    /// its start iteration (of 30k; default: where densification and opacity resets end, so it
+    /// does not fight a reset). Makes the surface layer opaque instead of translucent over
+    /// interior surfels.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_opacity_entropy: f32,
+    #[arg(long, default_value_t = 15000)]
+    pub opacity_entropy_from: u32,
 
     // Density control (2DGS defaults, iterations of 30k).
     #[arg(long, default_value_t = 500)]
@@ -353,7 +367,9 @@ impl TrainConfig {
         for (key, v) in [
             ("lambda_dist", self.lambda_dist),
             ("lambda_normal", self.lambda_normal),
+            ("lambda_normal_dispersion", self.lambda_normal_dispersion),
             ("lambda_mask", self.lambda_mask),
+            ("lambda_opacity_entropy", self.lambda_opacity_entropy),
             ("lr_sh", self.lr_sh),
             ("lr_sh_rest_inverse", self.lr_sh_rest_inverse),
             ("lr_opacity", self.lr_opacity),

@@ -19,7 +19,7 @@ use crate::io::ply::{read_ply, write_ply};
 use crate::loss::{self, NormalConsistency, Ssim};
 use crate::optim::{ExponLr, LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
-use crate::surfels::{SurfelGrads, Surfels};
+use crate::surfels::{SurfelGrads, Surfels, sigmoid};
 use crate::train::checkpoint::Checkpoint;
 use crate::train::config::{Background, TrainConfig};
 use crate::train::densify::{self, DensifyConfig, DensifyStats};
@@ -298,6 +298,10 @@ pub struct Losses {
     pub distortion: f32,
     pub normal: f32,
     pub psnr: f32,
+    /// Spread of the blended normals (0 while off).
+    pub normal_dispersion: f32,
+    /// Mean binary entropy of the surfel opacities (0 while the regulariser is off).
+    pub opacity_entropy: f32,
     /// Stage `init` only.
     pub init: InitLosses,
 }
@@ -322,6 +326,7 @@ fn iterate(
     let use_dist = cfg.lambda_dist > 0.0 && iteration >= cfg.at(cfg.dist_from);
     let use_normal = cfg.lambda_normal > 0.0 && iteration >= cfg.at(cfg.normal_from);
     let smooth_normal = state.light.is_some() && cfg.lambda_smooth_normal > 0.0;
+    let use_dispersion = cfg.lambda_normal_dispersion > 0.0 && iteration >= cfg.at(cfg.normal_from);
     let settings = RasterSettings {
         window: cfg.window,
         two_sided: cfg.two_sided,
@@ -330,7 +335,7 @@ fn iterate(
             colour: true,
             depth: use_normal && cfg.depth_ratio < 1.0,
             median_depth: use_normal && cfg.depth_ratio > 0.0,
-            normal: use_normal || smooth_normal,
+            normal: use_normal || smooth_normal || use_dispersion,
             distortion: use_dist,
             ..Outputs::none()
         },
@@ -363,12 +368,12 @@ fn iterate(
     };
     g.v_colour.clear();
     g.v_colour.resize(n, [0.0; 3]);
-    reset(&mut g.v_alpha, cfg.lambda_mask > 0.0);
+    reset(&mut g.v_alpha, cfg.lambda_mask > 0.0 || use_dispersion);
     reset(&mut g.v_depth, use_normal && cfg.depth_ratio < 1.0);
     reset(&mut g.v_median_depth, use_normal && cfg.depth_ratio > 0.0);
     reset(&mut g.v_distortion, use_dist);
     g.v_normal.clear();
-    if use_normal || smooth_normal {
+    if use_normal || smooth_normal || use_dispersion {
         g.v_normal.resize(n, [0.0; 3]);
     }
     g.v_features.clear();
@@ -415,6 +420,16 @@ fn iterate(
             &mut g.v_normal,
         );
         losses.total += cfg.lambda_normal * losses.normal;
+    }
+    if use_dispersion {
+        losses.normal_dispersion = loss::normal_dispersion(
+            &out.normal,
+            &out.alpha,
+            cfg.lambda_normal_dispersion,
+            &mut g.v_normal,
+            &mut g.v_alpha,
+        );
+        losses.total += cfg.lambda_normal_dispersion * losses.normal_dispersion;
     }
     if state.light.is_some() {
         losses.total += scratch.init.image_losses(cfg, &out, &scratch.gt, alpha, bg, g, &mut losses.init);
@@ -589,6 +604,16 @@ pub fn run_stage(
             );
         }
 
+        if cfg.lambda_opacity_entropy > 0.0 && it >= cfg.at(cfg.opacity_entropy_from) {
+            let e = loss::opacity_entropy(
+                &state.surfels.opacity_logits,
+                cfg.lambda_opacity_entropy,
+                &mut v_surfels.opacity_logits,
+            );
+            last.opacity_entropy = e;
+            last.total += cfg.lambda_opacity_entropy * e;
+        }
+
         let t_opt = Instant::now();
         state.adam.lr.means = schedule.at(it as u64);
         state.adam.step(&mut state.surfels, &v_surfels);
@@ -630,6 +655,18 @@ pub fn run_stage(
                 densify::reset_opacity(&mut state.surfels, &mut state.adam, 0.01);
             }
         }
+        // The entropy regulariser drives most interior surfels to opacity ≈ 0 after the last
+        // densification; prune those as densification would, so later stages do not carry them.
+        if cfg.lambda_opacity_entropy > 0.0
+            && it >= cfg.at(cfg.opacity_entropy_from)
+            && (it % cfg.densify_every == 0 || it == cfg.iters)
+        {
+            let remove: Vec<bool> =
+                state.surfels.opacity_logits.iter().map(|&x| sigmoid(x) < cfg.prune_opacity).collect();
+            if remove.iter().any(|&r| r) {
+                densify::prune_points(&mut state.surfels, &mut state.adam, &mut state.stats, &remove);
+            }
+        }
         split.densify += t_dens.elapsed().as_secs_f64();
         split.other = t_iter.elapsed().as_secs_f64()
             - (split.shading
@@ -650,6 +687,7 @@ pub fn run_stage(
             let mut line = serde_json::json!({
                 "stage": stage.name(), "iteration": it, "loss": last.total, "l1": last.l1, "dssim": last.dssim,
                 "mask": last.mask, "distortion": last.distortion, "normal": last.normal, "psnr": last.psnr,
+                "opacity_entropy": last.opacity_entropy, "normal_dispersion": last.normal_dispersion,
                 "surfels": state.surfels.len(), "seconds": started.elapsed().as_secs_f64(),
             });
             if let (Some(obj), GeometryStage::Init) = (line.as_object_mut(), stage) {

@@ -1,0 +1,141 @@
+//! Diagnostic: how right is a run's traced visibility? For the surfels that lie on the floor
+//! (nearest object = the first "floor" object of the dataset's README.json, within 15 mm of its
+//! true surface, facing up) every cached direction is re-tested against the true objects
+//! (analytic ray entry from the surfel's foot point on the true surface) and compared with the
+//! cached transmittance. Prints, binned by the horizontal gap to the nearest sphere: mean cached
+//! vs true visibility, leaks (truly blocked, cached T > 0.5), false blocks, and the direct light
+//! under the true env (Σ env·cos·T) ours / true.
+//!
+//!     cargo run --release --example probe_visibility -- RUN DATA
+//!
+//! `SKIP_MARGIN=m` overrides the run's `ray_skip_margin` (× extent; 0 = off).
+
+#[path = "common/scene_readme.rs"]
+mod scene_readme;
+
+use anyhow::Context;
+use radiogs::pbr_scene::PbrScene;
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() < 3 {
+        anyhow::bail!("usage: probe_visibility RUN DATA");
+    }
+    let (run, data) = (std::path::PathBuf::from(&args[1]), std::path::PathBuf::from(&args[2]));
+    let mut cfg = radiogs::eval::load_run_config(&run)?;
+    if let Ok(v) = std::env::var("SKIP_MARGIN") {
+        cfg.ray_skip_margin = v.parse().context("SKIP_MARGIN")?;
+    }
+    let extent = radiogs::pbr_scene::scene_extent(&run);
+    let surfels = radiogs::eval::load_run_surfels(&run)?;
+    let readme = scene_readme::load(&data)?;
+    let env_path = data.join("envmaps").join(format!("{}.exr", readme.environment.train_env));
+    let true_env = radiogs::envmap::EnvMap::load(&env_path)?;
+    let start = cfg.ray_start(extent);
+    let scene = PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed);
+    println!(
+        "{} surfels, {} samples, ray offset {:.4}, skip margin {:?} (scene units)",
+        scene.surfels.len(),
+        scene.cache.samples,
+        start.offset,
+        start.skip_margin
+    );
+    let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
+    let spheres: Vec<usize> =
+        (0..readme.objects.len()).filter(|&k| k != floor && readme.objects[k].kind == "uv_sphere").collect();
+    let ns = scene.cache.samples;
+    // Bins by horizontal gap from the surfel to the nearest sphere's footprint edge (scene units).
+    let edges = [0.0, 0.05, 0.1, 0.2, 0.4, f64::INFINITY];
+    #[derive(Default, Clone, Copy)]
+    struct Bin {
+        surfels: usize,
+        dirs: usize,
+        vis_ours: f64,
+        vis_true: f64,
+        leaks: usize,
+        false_blocks: usize,
+        blocked: usize,
+        direct_ours: f64,
+        direct_true: f64,
+        direct_true_cos: f64,
+        direct_true_vis: f64,
+        tilt: f64,
+    }
+    let mut bins = vec![Bin::default(); edges.len() - 1];
+    for i in 0..scene.surfels.len() {
+        let p = scene.surfels.means[i].map(|x| x as f64);
+        if scene_readme::nearest(&readme.objects, p) != floor {
+            continue;
+        }
+        let o = &readme.objects[floor];
+        let d = o.sdf(p);
+        let e = 1e-4;
+        let up = (o.sdf([p[0], p[1], p[2] + e]) - d) / e;
+        if d.abs() > 0.015 || up < 0.7 {
+            continue;
+        }
+        let foot = [p[0], p[1], p[2] - d + 1e-6];
+        let gap = spheres
+            .iter()
+            .map(|&k| {
+                let s = &readme.objects[k];
+                let h = ((foot[0] - s.location[0]).powi(2) + (foot[1] - s.location[1]).powi(2)).sqrt();
+                h - s.params.radius.unwrap_or(0.0)
+            })
+            .fold(f64::INFINITY, f64::min);
+        let Some(b) = edges.windows(2).position(|w| gap >= w[0] && gap < w[1]) else { continue };
+        let bin = &mut bins[b];
+        bin.surfels += 1;
+        let n = scene.surfels.normal(i);
+        bin.tilt += (n[2] as f64).clamp(-1.0, 1.0).acos().to_degrees();
+        for q in 0..ns {
+            let dir = scene.cache.dirs[i * ns + q];
+            let dd = dir.map(|x| x as f64);
+            // True hemisphere of the floor (normal +z).
+            if dd[2] <= 0.0 {
+                continue;
+            }
+            let blocked = spheres.iter().any(|&k| readme.objects[k].ray_entry(foot, dd).is_some());
+            let t = scene.cache.visibility[i * ns + q] as f64;
+            let cos_ours = (n[0] * dir[0] + n[1] * dir[1] + n[2] * dir[2]).max(0.0) as f64;
+            let l = true_env.lookup(dir);
+            let lum = (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64;
+            bin.dirs += 1;
+            bin.vis_ours += t;
+            bin.vis_true += if blocked { 0.0 } else { 1.0 };
+            bin.blocked += blocked as usize;
+            bin.leaks += (blocked && t > 0.5) as usize;
+            bin.false_blocks += (!blocked && t < 0.5) as usize;
+            bin.direct_ours += lum * cos_ours * t;
+            bin.direct_true += lum * dd[2] * if blocked { 0.0 } else { 1.0 };
+            bin.direct_true_cos += lum * dd[2] * t;
+            bin.direct_true_vis += lum * cos_ours * if blocked { 0.0 } else { 1.0 };
+        }
+    }
+    println!(
+        "gap to sphere | surfels | dirs | vis ours | vis true | truly blocked | leaks (of blocked) | false blocks (of free) | direct ours/true | (true cos) | (true vis) | mean normal tilt °"
+    );
+    for (k, b) in bins.iter().enumerate() {
+        if b.dirs == 0 {
+            continue;
+        }
+        let nd = b.dirs as f64;
+        println!(
+            "[{:.2}, {:.2}) | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1}",
+            edges[k],
+            edges[k + 1],
+            b.surfels,
+            b.dirs,
+            b.vis_ours / nd,
+            b.vis_true / nd,
+            b.blocked as f64 / nd,
+            b.leaks as f64 / (b.blocked.max(1)) as f64,
+            b.false_blocks as f64 / ((b.dirs - b.blocked).max(1)) as f64,
+            b.direct_ours / b.direct_true.max(1e-12),
+            b.direct_true_cos / b.direct_true.max(1e-12),
+            b.direct_true_vis / b.direct_true.max(1e-12),
+            b.tilt / b.surfels as f64
+        );
+    }
+    Ok(())
+}

@@ -15,6 +15,7 @@ mod scene_readme;
 
 use anyhow::Context;
 use radiogs::pbr_scene::PbrScene;
+use radiogs::shade::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -59,9 +60,31 @@ fn main() -> anyhow::Result<()> {
         direct_true: f64,
         direct_true_cos: f64,
         direct_true_vis: f64,
+        shader_ours: f64,
+        shader_true: f64,
         tilt: f64,
+        mean_normal: [f64; 3],
     }
     let mut bins = vec![Bin::default(); edges.len() - 1];
+    let mut dense = vec![[0.0f32; 3]; 512];
+    // Luminance-weighted mean direction of the true light over the upper hemisphere.
+    let mut light_dir = [0.0f64; 3];
+    for k in 0..4096 {
+        let z = 1.0 - (k as f64 + 0.5) / 4096.0;
+        let phi = k as f64 * 2.399_963_229_728_653;
+        let r = (1.0 - z * z).sqrt();
+        let d = [r * phi.cos(), r * phi.sin(), z];
+        let l = true_env.lookup(d.map(|x| x as f32));
+        let lum = (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64;
+        for a in 0..3 {
+            light_dir[a] += lum * d[a];
+        }
+    }
+    println!(
+        "true light's mean direction (upper hemisphere): elevation {:.1}°, azimuth {:.1}°",
+        90.0 - mean_tilt(light_dir),
+        light_dir[1].atan2(light_dir[0]).to_degrees()
+    );
     for i in 0..scene.surfels.len() {
         let p = scene.surfels.means[i].map(|x| x as f64);
         if scene_readme::nearest(&readme.objects, p) != floor {
@@ -88,6 +111,29 @@ fn main() -> anyhow::Result<()> {
         bin.surfels += 1;
         let n = scene.surfels.normal(i);
         bin.tilt += (n[2] as f64).clamp(-1.0, 1.0).acos().to_degrees();
+        for a in 0..3 {
+            bin.mean_normal[a] += n[a] as f64;
+        }
+        // The shader's own estimate (its directions about our normal, below the true horizon
+        // included, per-sample solid angle of the 10°-floor spiral) against the same estimator
+        // about the true normal with 512 directions and the true visibility.
+        let lum_of = |d: [f32; 3]| {
+            let l = true_env.lookup(d);
+            (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64
+        };
+        let cap = 2.0 * std::f64::consts::PI * (1.0 - MIN_ELEVATION_DEG.to_radians().sin());
+        for q in 0..ns {
+            let dir = scene.cache.dirs[i * ns + q];
+            let cos = (n[0] * dir[0] + n[1] * dir[1] + n[2] * dir[2]).max(0.0) as f64;
+            bin.shader_ours += lum_of(dir) * cos * scene.cache.visibility[i * ns + q] as f64 * cap / ns as f64;
+        }
+        fibonacci_hemisphere([0.0, 0.0, 1.0], 0.0, MIN_ELEVATION_DEG, ElevationFloor::Spread, &mut dense);
+        for d in &dense {
+            let dd = d.map(|x| x as f64);
+            if !spheres.iter().any(|&k| readme.objects[k].ray_entry(foot, dd).is_some()) {
+                bin.shader_true += lum_of(*d) * dd[2] * cap / dense.len() as f64;
+            }
+        }
         for q in 0..ns {
             let dir = scene.cache.dirs[i * ns + q];
             let dd = dir.map(|x| x as f64);
@@ -121,7 +167,7 @@ fn main() -> anyhow::Result<()> {
         }
         let nd = b.dirs as f64;
         println!(
-            "[{:.2}, {:.2}) | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1}",
+            "[{:.2}, {:.2}) | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1} | {:.3} | {:.1} ({:+.2})",
             edges[k],
             edges[k + 1],
             b.surfels,
@@ -134,8 +180,23 @@ fn main() -> anyhow::Result<()> {
             b.direct_ours / b.direct_true.max(1e-12),
             b.direct_true_cos / b.direct_true.max(1e-12),
             b.direct_true_vis / b.direct_true.max(1e-12),
-            b.tilt / b.surfels as f64
+            b.tilt / b.surfels as f64,
+            b.shader_ours / b.shader_true.max(1e-12),
+            mean_tilt(b.mean_normal),
+            towards(b.mean_normal, light_dir)
         );
     }
     Ok(())
+}
+
+/// Angle of vector v from +z, degrees.
+fn mean_tilt(v: [f64; 3]) -> f64 {
+    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
+    (v[2] / l).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Cosine between the horizontal parts of v and the light direction.
+fn towards(v: [f64; 3], light: [f64; 3]) -> f64 {
+    let a = (v[0] * v[0] + v[1] * v[1]).sqrt() * (light[0] * light[0] + light[1] * light[1]).sqrt();
+    if a > 0.0 { (v[0] * light[0] + v[1] * light[1]) / a } else { 0.0 }
 }

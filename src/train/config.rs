@@ -130,6 +130,11 @@ pub struct TrainConfig {
     /// shades each surfel with its own normal.
     #[arg(long, default_value_t = 0.0)]
     pub lambda_normal_dispersion: f32,
+    /// Edge-aware smoothness (L1 of the Sobel gradient, weighted by exp(−|∇I|)) of the rendered
+    /// normal in stage nvs, from `normal_from` (0 = off; stages init and inverse use
+    /// `lambda_smooth_normal`): textureless planes are otherwise free to bend.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_smooth_normal_nvs: f32,
     /// The depth the normal consistency of stages nvs and init differentiates, as 2DGS's
     /// `depth_ratio`: (1 − r) × expected depth + r × median depth (0: expected, 1: median).
     #[arg(long, default_value_t = 0.0)]
@@ -368,6 +373,7 @@ impl TrainConfig {
             ("lambda_dist", self.lambda_dist),
             ("lambda_normal", self.lambda_normal),
             ("lambda_normal_dispersion", self.lambda_normal_dispersion),
+            ("lambda_smooth_normal_nvs", self.lambda_smooth_normal_nvs),
             ("lambda_mask", self.lambda_mask),
             ("lambda_opacity_entropy", self.lambda_opacity_entropy),
             ("lr_sh", self.lr_sh),

@@ -284,6 +284,9 @@ struct Scratch {
     normal: NormalConsistency,
     init: InitPass,
     v_features: Vec<f32>,
+    /// Edge-aware normal smoothness of stage nvs and its gradient image.
+    smooth: loss::EdgeAwareSmoothness,
+    v_map: Vec<f32>,
     /// The forward's per-pixel hits, replayed by the backward (buffers reused).
     recorder: raster::HitRecorder,
 }
@@ -298,6 +301,8 @@ pub struct Losses {
     pub distortion: f32,
     pub normal: f32,
     pub psnr: f32,
+    /// Edge-aware smoothness of the rendered normal in stage nvs (0 while off).
+    pub smooth_normal: f32,
     /// Spread of the blended normals (0 while off).
     pub normal_dispersion: f32,
     /// Mean binary entropy of the surfel opacities (0 while the regulariser is off).
@@ -326,6 +331,8 @@ fn iterate(
     let use_dist = cfg.lambda_dist > 0.0 && iteration >= cfg.at(cfg.dist_from);
     let use_normal = cfg.lambda_normal > 0.0 && iteration >= cfg.at(cfg.normal_from);
     let smooth_normal = state.light.is_some() && cfg.lambda_smooth_normal > 0.0;
+    let smooth_normal_nvs =
+        state.light.is_none() && cfg.lambda_smooth_normal_nvs > 0.0 && iteration >= cfg.at(cfg.normal_from);
     let use_dispersion = cfg.lambda_normal_dispersion > 0.0 && iteration >= cfg.at(cfg.normal_from);
     let settings = RasterSettings {
         window: cfg.window,
@@ -335,7 +342,7 @@ fn iterate(
             colour: true,
             depth: use_normal && cfg.depth_ratio < 1.0,
             median_depth: use_normal && cfg.depth_ratio > 0.0,
-            normal: use_normal || smooth_normal || use_dispersion,
+            normal: use_normal || smooth_normal || use_dispersion || smooth_normal_nvs,
             distortion: use_dist,
             ..Outputs::none()
         },
@@ -373,7 +380,7 @@ fn iterate(
     reset(&mut g.v_median_depth, use_normal && cfg.depth_ratio > 0.0);
     reset(&mut g.v_distortion, use_dist);
     g.v_normal.clear();
-    if use_normal || smooth_normal || use_dispersion {
+    if use_normal || smooth_normal || use_dispersion || smooth_normal_nvs {
         g.v_normal.resize(n, [0.0; 3]);
     }
     g.v_features.clear();
@@ -420,6 +427,25 @@ fn iterate(
             &mut g.v_normal,
         );
         losses.total += cfg.lambda_normal * losses.normal;
+    }
+    if smooth_normal_nvs {
+        scratch.v_map.clear();
+        scratch.v_map.resize(n * 3, 0.0);
+        let v = scratch.smooth.loss(
+            out.normal.as_flattened(),
+            3,
+            &scratch.gt,
+            w,
+            h,
+            Some(alpha),
+            cfg.lambda_smooth_normal_nvs,
+            &mut scratch.v_map,
+        );
+        losses.smooth_normal = v;
+        losses.total += cfg.lambda_smooth_normal_nvs * v;
+        for (d, s) in g.v_normal.as_flattened_mut().iter_mut().zip(&scratch.v_map) {
+            *d += s;
+        }
     }
     if use_dispersion {
         losses.normal_dispersion = loss::normal_dispersion(
@@ -688,6 +714,7 @@ pub fn run_stage(
                 "stage": stage.name(), "iteration": it, "loss": last.total, "l1": last.l1, "dssim": last.dssim,
                 "mask": last.mask, "distortion": last.distortion, "normal": last.normal, "psnr": last.psnr,
                 "opacity_entropy": last.opacity_entropy, "normal_dispersion": last.normal_dispersion,
+                "smooth_normal": last.smooth_normal,
                 "surfels": state.surfels.len(), "seconds": started.elapsed().as_secs_f64(),
             });
             if let (Some(obj), GeometryStage::Init) = (line.as_object_mut(), stage) {

@@ -210,18 +210,20 @@ fn depth_ratio_acts_through_the_normal_term_only() {
 
 /// The opacity-entropy regulariser (on from the start here) drives the surfel opacities to 0
 /// or 1 and prunes the transparent ones, while the views are still learned; the run without it
-/// keeps many translucent surfels. The normal-dispersion term trains to other, finite surfels.
+/// keeps many translucent surfels. The normal-dispersion and nvs normal-smoothness terms train to
+/// other, finite surfels.
 #[test]
 fn opacity_entropy_binarises_and_prunes_and_normal_dispersion_acts() {
     let dir = temp_dir("data_oe");
     make_dataset(&dir);
     let dataset = Dataset::open(&dir).unwrap();
-    let run = |name: &str, entropy: f32, dispersion: f32| {
+    let run = |name: &str, entropy: f32, dispersion: f32, smooth: f32| {
         let out = temp_dir(name);
         let cfg = TrainConfig {
             lambda_opacity_entropy: entropy,
             opacity_entropy_from: 0,
             lambda_normal_dispersion: dispersion,
+            lambda_smooth_normal_nvs: smooth,
             normal_from: 0,
             ..config(&dir, &out, 250)
         };
@@ -230,8 +232,8 @@ fn opacity_entropy_binarises_and_prunes_and_normal_dispersion_acts() {
     };
     let translucent =
         |s: &Surfels| s.opacity_logits.iter().filter(|&&x| (0.1..0.9).contains(&radiogs::surfels::sigmoid(x))).count();
-    let (plain, _) = run("oe_off", 0.0, 0.0);
-    let (binary, summary) = run("oe_on", 0.1, 0.0);
+    let (plain, _) = run("oe_off", 0.0, 0.0, 0.0);
+    let (binary, summary) = run("oe_on", 0.1, 0.0, 0.0);
     let prune = TrainConfig::default().prune_opacity;
     assert!(
         binary.opacity_logits.iter().all(|&x| radiogs::surfels::sigmoid(x) >= prune),
@@ -244,8 +246,11 @@ fn opacity_entropy_binarises_and_prunes_and_normal_dispersion_acts() {
         translucent(&plain)
     );
     assert!(summary.last_psnr > 28.0, "the views are no longer learned: {summary:?}");
-    let (dispersed, _) = run("nd_on", 0.0, 0.5);
-    let (no_dispersion, _) = run("nd_off", 0.0, 0.0);
+    let (dispersed, _) = run("nd_on", 0.0, 0.5, 0.0);
+    let (no_dispersion, _) = run("nd_off", 0.0, 0.0, 0.0);
     assert!(dispersed.means.iter().flatten().all(|x| x.is_finite()));
     assert!(dispersed.quats != no_dispersion.quats, "the normal dispersion term had no effect");
+    let (smoothed, _) = run("sn_on", 0.0, 0.0, 0.5);
+    assert!(smoothed.means.iter().flatten().all(|x| x.is_finite()));
+    assert!(smoothed.quats != no_dispersion.quats, "the nvs normal smoothness had no effect");
 }

@@ -3,8 +3,11 @@
 //! true surface, facing up) every cached direction is re-tested against the true objects
 //! (analytic ray entry from the surfel's foot point on the true surface) and compared with the
 //! cached transmittance. Prints, binned by the horizontal gap to the nearest sphere: mean cached
-//! vs true visibility, leaks (truly blocked, cached T > 0.5), false blocks, and the direct light
-//! under the true env (Σ env·cos·T) ours / true.
+//! vs true visibility, leaks (truly blocked, cached T > 0.5), false blocks, ratios of direct
+//! light under the true env restricted to the cached directions, the shader's own direct-light
+//! estimate against the same estimator about the true normal (512 directions, true visibility)
+//! and with our normal but the true visibility, and the normals' tilt and lean away from the
+//! nearest sphere.
 //!
 //!     cargo run --release --example probe_visibility -- RUN DATA
 //!
@@ -62,6 +65,8 @@ fn main() -> anyhow::Result<()> {
         direct_true_vis: f64,
         shader_ours: f64,
         shader_true: f64,
+        shader_our_normal: f64,
+        radial_lean: f64,
         tilt: f64,
         mean_normal: [f64; 3],
     }
@@ -107,10 +112,28 @@ fn main() -> anyhow::Result<()> {
             })
             .fold(f64::INFINITY, f64::min);
         let Some(b) = edges.windows(2).position(|w| gap >= w[0] && gap < w[1]) else { continue };
+        // Unit horizontal direction from the nearest sphere's centre to the foot point.
+        let nearest_sphere = spheres
+            .iter()
+            .copied()
+            .min_by(|&a, &c| {
+                let g = |k: usize| {
+                    let s = &readme.objects[k];
+                    ((foot[0] - s.location[0]).powi(2) + (foot[1] - s.location[1]).powi(2)).sqrt()
+                        - s.params.radius.unwrap_or(0.0)
+                };
+                g(a).total_cmp(&g(c))
+            })
+            .context("no sphere")?;
+        let c = readme.objects[nearest_sphere].location;
+        let (rx, ry) = (foot[0] - c[0], foot[1] - c[1]);
+        let rl = (rx * rx + ry * ry).sqrt().max(1e-12);
         let bin = &mut bins[b];
         bin.surfels += 1;
         let n = scene.surfels.normal(i);
         bin.tilt += (n[2] as f64).clamp(-1.0, 1.0).acos().to_degrees();
+        // Lean of the normal away from the sphere (degrees; negative: towards it).
+        bin.radial_lean += ((n[0] as f64 * rx + n[1] as f64 * ry) / rl).clamp(-1.0, 1.0).asin().to_degrees();
         for a in 0..3 {
             bin.mean_normal[a] += n[a] as f64;
         }
@@ -132,6 +155,16 @@ fn main() -> anyhow::Result<()> {
             let dd = d.map(|x| x as f64);
             if !spheres.iter().any(|&k| readme.objects[k].ray_entry(foot, dd).is_some()) {
                 bin.shader_true += lum_of(*d) * dd[2] * cap / dense.len() as f64;
+            }
+        }
+        // The same dense estimator about our normal with the true visibility (the true floor
+        // blocks what lies below its plane): the share of the error due to the normal alone.
+        fibonacci_hemisphere(n, 0.0, MIN_ELEVATION_DEG, ElevationFloor::Spread, &mut dense);
+        for d in &dense {
+            let dd = d.map(|x| x as f64);
+            if dd[2] > 0.0 && !spheres.iter().any(|&k| readme.objects[k].ray_entry(foot, dd).is_some()) {
+                let cos = (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]).max(0.0) as f64;
+                bin.shader_our_normal += lum_of(*d) * cos * cap / dense.len() as f64;
             }
         }
         for q in 0..ns {
@@ -167,7 +200,7 @@ fn main() -> anyhow::Result<()> {
         }
         let nd = b.dirs as f64;
         println!(
-            "[{:.2}, {:.2}) | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1} | {:.3} | {:.1} ({:+.2})",
+            "[{:.2}, {:.2}) | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.1} | {:.3} | {:.3} | {:+.1} | {:.1} ({:+.2})",
             edges[k],
             edges[k + 1],
             b.surfels,
@@ -182,6 +215,8 @@ fn main() -> anyhow::Result<()> {
             b.direct_true_vis / b.direct_true.max(1e-12),
             b.tilt / b.surfels as f64,
             b.shader_ours / b.shader_true.max(1e-12),
+            b.shader_our_normal / b.shader_true.max(1e-12),
+            b.radial_lean / b.surfels as f64,
             mean_tilt(b.mean_normal),
             towards(b.mean_normal, light_dir)
         );

@@ -13,6 +13,8 @@
 //!
 //! `SKIP_MARGIN=m` overrides the run's `ray_skip_margin` (× extent; 0 = off).
 
+#[path = "common/probe_run.rs"]
+mod probe_run;
 #[path = "common/scene_readme.rs"]
 mod scene_readme;
 
@@ -21,17 +23,7 @@ use radiogs::pbr_scene::PbrScene;
 use radiogs::shade::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 
 fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().collect();
-    if args.len() < 3 {
-        anyhow::bail!("usage: probe_visibility RUN DATA");
-    }
-    let (run, data) = (std::path::PathBuf::from(&args[1]), std::path::PathBuf::from(&args[2]));
-    let mut cfg = radiogs::eval::load_run_config(&run)?;
-    if let Ok(v) = std::env::var("SKIP_MARGIN") {
-        cfg.ray_skip_margin = v.parse().context("SKIP_MARGIN")?;
-    }
-    let extent = radiogs::pbr_scene::scene_extent(&run);
-    let surfels = radiogs::eval::load_run_surfels(&run)?;
+    let probe_run::ProbeRun { data, cfg, extent, surfels, .. } = probe_run::from_args("probe_visibility")?;
     let readme = scene_readme::load(&data)?;
     let env_path = data.join("envmaps").join(format!("{}.exr", readme.environment.train_env));
     let true_env = radiogs::envmap::EnvMap::load(&env_path)?;

@@ -23,6 +23,19 @@ fn temp_dir(name: &str) -> PathBuf {
     dir
 }
 
+/// The settings every inverse test here shares: its data and run folders, a black background,
+/// no periodic checkpoints, sparse logs.
+fn tiny_config(data: &Path, out: &Path) -> TrainConfig {
+    TrainConfig {
+        data: data.to_path_buf(),
+        out: out.to_path_buf(),
+        background: Background::Black,
+        checkpoint_every: 0,
+        log_every: 50,
+        ..TrainConfig::default()
+    }
+}
+
 fn plane() -> Surfels {
     let mut s = Surfels::default();
     for a in 0..8 {
@@ -104,18 +117,13 @@ fn dataset_and_nvs_run(tag: &str) -> (PathBuf, Dataset, PathBuf) {
 fn light_warmup_freezes_materials_then_releases_them() {
     let (data, dataset, run) = dataset_and_nvs_run("warmup");
     let mut cfg = TrainConfig {
-        data,
-        out: run.clone(),
         inverse_iters: 12,
         light_warmup: 12,
-        background: Background::Black,
         env_init: 0.5,
         pbr_samples: 8,
         rc_rays: 8,
         rc_surfels: 16,
-        checkpoint_every: 0,
-        log_every: 50,
-        ..TrainConfig::default()
+        ..tiny_config(&data, &run)
     };
     cfg.save(&run.join("config.toml")).unwrap();
     let summary = radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
@@ -143,10 +151,7 @@ fn light_warmup_freezes_materials_then_releases_them() {
 fn lambert_plane_albedo_converges_under_known_light() {
     let (data, dataset, run) = dataset_and_nvs_run("plane");
     let cfg = TrainConfig {
-        data: data.clone(),
-        out: run.clone(),
         inverse_iters: 300,
-        background: Background::Black,
         env_init: LIGHT,
         lr_env: 0.0,
         lr_albedo: 0.02,
@@ -154,9 +159,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
         pbr_samples: 32,
         rc_rays: 32,
         rc_surfels: 16,
-        checkpoint_every: 0,
-        log_every: 50,
-        ..TrainConfig::default()
+        ..tiny_config(&data, &run)
     };
     cfg.save(&run.join("config.toml")).unwrap();
     let summary = radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
@@ -232,19 +235,14 @@ fn lambert_plane_albedo_converges_under_known_light() {
 fn inverse_resume_is_exact_with_per_row_refresh() {
     let (data, dataset, straight) = dataset_and_nvs_run("resume-a");
     let cfg = |out: &Path| TrainConfig {
-        data: data.clone(),
-        out: out.to_path_buf(),
         inverse_iters: 20,
         cache_every: 8,
         // The albedo–light gauge at 5, 10 (after the resume) and 15.
         gauge_every: 5,
-        background: Background::Black,
         pbr_samples: 8,
         rc_rays: 8,
         rc_surfels: 16,
-        checkpoint_every: 0,
-        log_every: 50,
-        ..TrainConfig::default()
+        ..tiny_config(&data, out)
     };
     radiogs::train::inverse::run(&cfg(&straight), &dataset, false).unwrap();
     let split = temp_dir("resume-b-run");
@@ -325,11 +323,8 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
     c.put_surfels("params", &gt);
     c.save(&radiogs::train::nvs::checkpoint_path(&run)).unwrap();
     let cfg = TrainConfig {
-        data,
-        out: run.clone(),
         inverse_iters: 2,
         gauge_every: 1,
-        background: Background::Black,
         albedo_init: 0.5 * ALBEDO,
         env_init: 2.0 * LIGHT,
         roughness_init: 0.9,
@@ -344,9 +339,7 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
         rc_rays: 32,
         rc_surfels: 16,
         ray_skip_margin: 0.0,
-        checkpoint_every: 0,
-        log_every: 50,
-        ..TrainConfig::default()
+        ..tiny_config(&data, &run)
     };
     cfg.save(&run.join("config.toml")).unwrap();
     radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();

@@ -234,6 +234,9 @@ fn opacity_entropy_binarises_and_prunes_and_normal_dispersion_acts() {
         |s: &Surfels| s.opacity_logits.iter().filter(|&&x| (0.1..0.9).contains(&radiogs::surfels::sigmoid(x))).count();
     let (plain, _) = run("oe_off", 0.0, 0.0, 0.0);
     let (binary, summary) = run("oe_on", 0.1, 0.0, 0.0);
+    // Without the regulariser this scene keeps ~40 % translucent surfels (119 of 302 when written),
+    // so the comparison below is not vacuous.
+    assert!(translucent(&plain) >= 20, "the plain run has only {} translucent surfels", translucent(&plain));
     let prune = TrainConfig::default().prune_opacity;
     assert!(
         binary.opacity_logits.iter().all(|&x| radiogs::surfels::sigmoid(x) >= prune),

@@ -14,6 +14,7 @@ pub mod mask;
 pub mod normal_consistency;
 pub mod normal_dispersion;
 pub mod opacity_entropy;
+pub mod sh_rest;
 pub mod smoothness;
 pub mod ssim;
 
@@ -23,6 +24,7 @@ pub use mask::{mask_bce, mask_entropy};
 pub use normal_consistency::{NormalConsistency, depth_to_normal};
 pub use normal_dispersion::normal_dispersion;
 pub use opacity_entropy::opacity_entropy;
+pub use sh_rest::sh_rest_energy;
 pub use smoothness::EdgeAwareSmoothness;
 pub use ssim::{Ssim, psnr, psnr_masked, ssim_eval};
 

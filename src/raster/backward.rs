@@ -36,7 +36,17 @@ const ROW_MEAN2D: usize = 9;
 const ROW_OPACITY: usize = 11;
 const ROW_COLOUR: usize = 12;
 const ROW_NORMAL: usize = 15;
-const ROW_FEAT: usize = 18;
+/// Columns every row has; then, with `RasterSettings::abs_centre_gradient`, two columns of
+/// Σ over pixels of |that pixel's ∂L/∂(centre)| per axis (pixel units, AbsGS's statistic);
+/// then the feature channels.
+const ROW_FIXED: usize = 18;
+const ROW_ABS_MEAN2D: usize = 18;
+const ROW_MAX_FIXED: usize = 20;
+
+/// Column of the first feature channel.
+fn feature_column(s: &RasterSettings) -> usize {
+    if s.abs_centre_gradient { ROW_MAX_FIXED } else { ROW_FIXED }
+}
 
 /// Backward pass: adds ∂L/∂(parameters) into `v_surfels` (means, quats, log_scales,
 /// opacity_logits, sh) and ∂L/∂features into `v_features` (N × channels).
@@ -59,7 +69,8 @@ pub fn render_backward(
         assert_eq!(f.data.len(), n * nch);
     }
     let bins = &state.tiles;
-    let stride = ROW_FEAT + nch;
+    let feat0 = feature_column(settings);
+    let stride = feat0 + nch;
     let npairs = bins.ids.len();
     let mut rows = vec![0.0f32; npairs * stride];
     if state.width > 0 && state.height > 0 {
@@ -77,6 +88,7 @@ pub fn render_backward(
     let campos = camera.position();
     let proj = &state.proj;
     let mut v_mean2d = vec![[0.0f32; 2]; n];
+    let mut v_mean2d_abs = vec![[0.0f32; 2]; n];
     let row_sum = |i: usize, out: &mut [f32]| {
         for g in bins.pair_offsets[i]..bins.pair_offsets[i + 1] {
             let p = bins.sorted_of_gen[g as usize] as usize;
@@ -92,15 +104,16 @@ pub fn render_backward(
         v_surfels.opacity_logits.par_iter_mut(),
         v_surfels.sh.par_iter_mut(),
         v_mean2d.par_iter_mut(),
+        v_mean2d_abs.par_iter_mut(),
     )
         .into_par_iter()
         .enumerate()
-        .for_each(|(i, (vm, vs, vq, vo, vsh, vm2))| {
+        .for_each(|(i, (vm, vs, vq, vo, vsh, vm2, vabs))| {
             if bins.pair_offsets[i] == bins.pair_offsets[i + 1] {
                 return;
             }
-            let mut acc = [0.0f32; ROW_FEAT];
-            row_sum_fixed(&rows, bins, i, stride, &mut acc);
+            let mut acc = [0.0f32; ROW_MAX_FIXED];
+            row_sum_fixed(&rows, bins, i, stride, &mut acc[..feat0]);
             let g = ProjGrad {
                 v_tu: [acc[ROW_TU], acc[ROW_TU + 1], acc[ROW_TU + 2]],
                 v_tv: [acc[ROW_TV], acc[ROW_TV + 1], acc[ROW_TV + 2]],
@@ -112,29 +125,31 @@ pub fn render_backward(
             };
             let slots = SurfelGradSlots { means: vm, log_scales: vs, quats: vq, opacity_logit: vo, sh: vsh };
             *vm2 = project_backward_one(surfels, i, camera, campos, proj, &g, slots);
+            // Pixel units → the NDC-like units of v_mean2d (× W/2, H/2); zero when not computed.
+            *vabs =
+                [acc[ROW_ABS_MEAN2D] * 0.5 * camera.width as f32, acc[ROW_ABS_MEAN2D + 1] * 0.5 * camera.height as f32];
         });
     if let Some(vf) = v_features
         && nch > 0
     {
         assert_eq!(vf.len(), n * nch);
         vf.par_chunks_mut(nch).enumerate().for_each(|(i, out)| {
-            let mut acc = [0.0f32; ROW_FEAT + MAX_FEATURES];
+            let mut acc = [0.0f32; ROW_MAX_FIXED + MAX_FEATURES];
             row_sum(i, &mut acc[..stride]);
             for ch in 0..nch {
-                out[ch] += acc[ROW_FEAT + ch];
+                out[ch] += acc[feat0 + ch];
             }
         });
     }
-    let v_mean2d_norm = v_mean2d.iter().map(|g| (g[0] * g[0] + g[1] * g[1]).sqrt()).collect();
-    BackwardOutput { v_mean2d_norm, v_mean2d }
+    BackwardOutput { v_mean2d, v_mean2d_abs }
 }
 
-fn row_sum_fixed(rows: &[f32], bins: &super::tiles::TileBins, i: usize, stride: usize, out: &mut [f32; ROW_FEAT]) {
+fn row_sum_fixed(rows: &[f32], bins: &super::tiles::TileBins, i: usize, stride: usize, out: &mut [f32]) {
+    let m = out.len();
     for g in bins.pair_offsets[i]..bins.pair_offsets[i + 1] {
         let p = bins.sorted_of_gen[g as usize] as usize;
-        let r = &rows[p * stride..p * stride + ROW_FEAT];
-        for k in 0..ROW_FEAT {
-            out[k] += r[k];
+        for (o, r) in out.iter_mut().zip(&rows[p * stride..p * stride + m]) {
+            *o += *r;
         }
     }
 }
@@ -395,7 +410,8 @@ fn pixel_backward(
         let mut q = splat(v_a) + splat(v_dd) * z;
         let mut v_z = wgt * splat(v_dd);
         let mut cols = [zero; 16];
-        let mut extra = [zero; 2 + MAX_FEATURES];
+        let mut extra = [zero; ROW_MAX_FIXED - 16 + MAX_FEATURES];
+        let feat0 = feature_column(s);
         let at3 = |ch: u32| lanes::Gather16::new(li.map(|i| 3 * i + ch), live, 3 * tile_n);
         if o.colour {
             for ch in 0..3 {
@@ -430,7 +446,7 @@ fn pixel_backward(
             for ch in 0..nch {
                 let f = rows_at.from(&fe.data[ch..]);
                 q += splat(pg.features[ch]) * f;
-                extra[ROW_FEAT - 16 + ch] = wgt * splat(pg.features[ch]);
+                extra[feat0 - 16 + ch] = wgt * splat(pg.features[ch]);
             }
         }
         if median_j >= j && median_j < j + 16 {
@@ -476,6 +492,13 @@ fn pixel_backward(
         cols[ROW_MEAN2D] = is3d.select(zero, splat(4.0) * (mean2d[0] - px) * v_rho);
         cols[ROW_MEAN2D + 1] = is3d.select(zero, splat(4.0) * (mean2d[1] - py) * v_rho);
         cols[ROW_TW + 2] = is3d.select(cols[ROW_TW + 2], v_z);
+        // This pixel's ∂L/∂(centre, pixels): Tu.z = x_pix · Tw.z (one branch's term is 0).
+        if s.abs_centre_gradient {
+            for a in 0..2 {
+                let v_tz = cols[if a == 0 { ROW_TU + 2 } else { ROW_TV + 2 }];
+                extra[ROW_ABS_MEAN2D + a - 16] = (v_tz * tw[2] + cols[ROW_MEAN2D + a]).abs();
+            }
+        }
 
         lanes::add_columns(tile_rows, stride, 0, &li, live, cols, 16);
         let n_extra = stride - 16;

@@ -87,6 +87,9 @@ pub struct RasterSettings {
     pub alpha_min: f32,
     /// Compositing stops before a blend would take T below this (1e-4).
     pub transmittance_min: f32,
+    /// The backward also sums AbsGS's statistic (`BackwardOutput::v_mean2d_abs`, else zeros):
+    /// two more gradient columns per (tile, surfel) pair, so only when densification uses it.
+    pub abs_centre_gradient: bool,
 }
 
 impl Default for RasterSettings {
@@ -100,6 +103,7 @@ impl Default for RasterSettings {
             outputs: Outputs::default(),
             alpha_min: 1.0 / 255.0,
             transmittance_min: 1e-4,
+            abs_centre_gradient: false,
         }
     }
 }
@@ -159,13 +163,15 @@ pub struct RenderGrads {
 /// Per-surfel by-products of the backward pass (for densification).
 #[derive(Clone, Debug, Default)]
 pub struct BackwardOutput {
-    /// |v_mean2d|: the 2DGS densification statistic for this view.
-    pub v_mean2d_norm: Vec<f32>,
     /// ∂L/∂(projected centre) in NDC-like units, as 2DGS reports it:
     /// (∂L/∂T[0][2] · z · W/2, ∂L/∂T[1][2] · z · H/2), T the splat-to-pixel transform
     /// (rows Tu, Tv, Tw), z the centre's camera depth. Since x_pix = Tu.z / z, this is
     /// ∂L/∂x_pix · W/2 ≈ ∂L/∂x_ndc with the 3D (ray–splat) path included.
     pub v_mean2d: Vec<[f32; 2]>,
+    /// AbsGS's homodirectional statistic, same units: per axis the sum over pixels of the
+    /// absolute value of each pixel's contribution to `v_mean2d` (no cancellation between the
+    /// pixels of a large surfel that pull its centre opposite ways).
+    pub v_mean2d_abs: Vec<[f32; 2]>,
 }
 
 /// Everything the backward pass needs from the forward pass, plus per-surfel visibility.

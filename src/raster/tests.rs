@@ -132,7 +132,7 @@ fn edge_cases_n0_n1_one_pixel_edge_on_camera_inside() {
     let mut g = Surfels::default();
     let grads = RenderGrads { v_colour: vec![[1.0; 3]; 17 * 9], ..Default::default() };
     let b = render_backward(&Surfels::default(), &cam, &set, None, &st, &grads, &mut g, None);
-    assert!(b.v_mean2d_norm.is_empty());
+    assert!(b.v_mean2d.is_empty() && b.v_mean2d_abs.is_empty());
     // N = 1, facing the camera, at the centre of a 1 × 1 image.
     let mut s = Surfels { sh_degree: 0, ..Default::default() };
     let n = (cam.position() - Vec3::ZERO).normalize();
@@ -447,7 +447,7 @@ fn densification_gradient_is_the_screen_space_centre_gradient() {
     let mut seen = 0;
     for i in 0..s.len() {
         if !st.visible[i] {
-            assert_eq!(b.v_mean2d_norm[i], 0.0);
+            assert_eq!((b.v_mean2d[i], b.v_mean2d_abs[i]), ([0.0; 2], [0.0; 2]));
             continue;
         }
         seen += 1;
@@ -457,9 +457,92 @@ fn densification_gradient_is_the_screen_space_centre_gradient() {
         let got = b.v_mean2d[i];
         assert!((got[0] - want_x).abs() < 1e-3 * (1.0 + want_x.abs()), "{i}: {got:?} vs {want_x} {want_y}");
         assert!((got[1] - want_y).abs() < 1e-3 * (1.0 + want_y.abs()), "{i}: {got:?} vs {want_x} {want_y}");
-        assert!((b.v_mean2d_norm[i] - (got[0].hypot(got[1]))).abs() < 1e-6);
     }
     assert!(seen > 5);
+}
+
+/// AbsGS's statistic is, per axis, the sum over pixels of |that pixel's centre gradient|:
+/// checked against backward passes with the loss on one pixel at a time, on a scene with
+/// surfels large enough to cover pixels on both sides of their centre (the opposite pulls that
+/// cancel in `v_mean2d`) and tiny ones (the screen-space filter branch).
+#[test]
+fn abs_centre_gradient_sums_each_pixels_absolute_value() {
+    let (w, h) = (20u32, 14u32);
+    let mut s = random_scene(10, 31, (0.15, 0.5), (0.3, 0.9));
+    s.sh_degree = 0;
+    for i in 0..3 {
+        s.log_scales[i] = [1e-3f32.ln(), 2e-3f32.ln()];
+    }
+    let cam = camera(w, h);
+    let outputs = Outputs { colour: true, depth: true, normal: true, ..Outputs::none() };
+    let set = RasterSettings { two_sided: true, outputs, abs_centre_gradient: true, ..Default::default() };
+    let (_, st) = render(&s, &cam, &set, None);
+    let px = (w * h) as usize;
+    let wts = weights(px, 0, 4);
+    let all = RenderGrads {
+        v_colour: wts.colour.clone(),
+        v_alpha: wts.alpha.clone(),
+        v_depth: wts.depth.clone(),
+        v_normal: wts.normal.clone(),
+        ..Default::default()
+    };
+    let mut g = s.zeros_like();
+    let full = render_backward(&s, &cam, &set, None, &st, &all, &mut g, None);
+    let mut want = vec![[0.0f64; 2]; s.len()];
+    let mut signed = vec![[0.0f64; 2]; s.len()];
+    for p in 0..px {
+        let only = |v: &[f32]| -> Vec<f32> { (0..px).map(|i| if i == p { v[i] } else { 0.0 }).collect() };
+        let only3 =
+            |v: &[[f32; 3]]| -> Vec<[f32; 3]> { (0..px).map(|i| if i == p { v[i] } else { [0.0; 3] }).collect() };
+        let one = RenderGrads {
+            v_colour: only3(&wts.colour),
+            v_alpha: only(&wts.alpha),
+            v_depth: only(&wts.depth),
+            v_normal: only3(&wts.normal),
+            ..Default::default()
+        };
+        let mut gp = s.zeros_like();
+        let b = render_backward(&s, &cam, &set, None, &st, &one, &mut gp, None);
+        for i in 0..s.len() {
+            for a in 0..2 {
+                want[i][a] += (b.v_mean2d[i][a] as f64).abs();
+                signed[i][a] += b.v_mean2d[i][a] as f64;
+            }
+        }
+    }
+    let mut cancelled = 0;
+    for i in 0..s.len() {
+        for a in 0..2 {
+            let got = full.v_mean2d_abs[i][a] as f64;
+            assert!(
+                (got - want[i][a]).abs() <= 1e-4 * (1.0 + want[i][a]),
+                "surfel {i} axis {a}: {got} vs {}",
+                want[i][a]
+            );
+            assert!((full.v_mean2d[i][a] as f64 - signed[i][a]).abs() <= 1e-4 * (1.0 + want[i][a]));
+            if want[i][a] > 2.0 * signed[i][a].abs() + 1e-6 {
+                cancelled += 1;
+            }
+        }
+    }
+    assert!(cancelled >= 3, "the scene must have surfels whose pixels pull opposite ways ({cancelled})");
+
+    // Off (the default): zeros, and every other gradient bit for bit the same, features (whose
+    // columns move) included.
+    let ch = 3;
+    let feats = random_features(s.len(), ch, 8);
+    let f = Some(Features { data: &feats, channels: ch });
+    let with_features = RenderGrads { v_features: weights(px, ch, 9).features, ..all };
+    let mut grads_fv = Vec::new();
+    for abs in [true, false] {
+        let set = RasterSettings { abs_centre_gradient: abs, ..set };
+        let (_, st) = render(&s, &cam, &set, f);
+        let (mut g, mut fv) = (s.zeros_like(), vec![0.0; s.len() * ch]);
+        let b = render_backward(&s, &cam, &set, f, &st, &with_features, &mut g, Some(&mut fv));
+        assert_eq!(b.v_mean2d_abs.iter().any(|a| a != &[0.0; 2]), abs);
+        grads_fv.push((g, fv, b.v_mean2d));
+    }
+    assert!(grads_fv[0] == grads_fv[1]);
 }
 
 /// The surface-aware depth (GauS-SLAM) against the f64 reference, which computes it from each
@@ -649,7 +732,7 @@ fn recorded_hits_replay_the_backward_exactly() {
         let ba = render_backward(&s, &cam, &set, f, &st_a, &grads, &mut ga, Some(&mut fa));
         let bb = render_backward(&s, &cam, &set, f, &st_b, &grads, &mut gb, Some(&mut fb));
         assert!(ga == gb && fa == fb, "window {window}: replayed gradients differ");
-        assert!(ba.v_mean2d == bb.v_mean2d && ba.v_mean2d_norm == bb.v_mean2d_norm);
+        assert!(ba.v_mean2d == bb.v_mean2d && ba.v_mean2d_abs == bb.v_mean2d_abs);
         assert!(ga != s.zeros_like());
         reuse = st_b.record.take().unwrap();
     }

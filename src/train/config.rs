@@ -150,6 +150,10 @@ pub struct TrainConfig {
     pub lambda_opacity_entropy: f32,
     #[arg(long, default_value_t = 15000)]
     pub opacity_entropy_from: u32,
+    /// Weight of the view-dependence penalty in stage nvs: mean energy of the surfels' SH
+    /// coefficients beyond the DC term (textureless surfaces; 0 = off).
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda_sh_rest: f32,
 
     // Density control (2DGS defaults, iterations of 30k).
     #[arg(long, default_value_t = 500)]
@@ -162,6 +166,10 @@ pub struct TrainConfig {
     pub opacity_reset_every: u32,
     #[arg(long, default_value_t = 2e-4)]
     pub densify_grad_threshold: f32,
+    /// Split large surfels on AbsGS's homodirectional gradient (per-pixel |∂L/∂μ₂D| summed)
+    /// at this threshold instead of on the plain gradient (AbsGS, PGSR: 8e-4); 0 = off (2DGS).
+    #[arg(long, default_value_t = 0.0)]
+    pub densify_abs_grad_threshold: f32,
     #[arg(long, default_value_t = 0.01)]
     pub percent_dense: f32,
     #[arg(long, default_value_t = 0.05)]
@@ -376,6 +384,11 @@ impl TrainConfig {
             ("lambda_smooth_normal_nvs", self.lambda_smooth_normal_nvs),
             ("lambda_mask", self.lambda_mask),
             ("lambda_opacity_entropy", self.lambda_opacity_entropy),
+            ("lambda_sh_rest", self.lambda_sh_rest),
+            ("densify_grad_threshold", self.densify_grad_threshold),
+            ("densify_abs_grad_threshold", self.densify_abs_grad_threshold),
+            ("percent_dense", self.percent_dense),
+            ("prune_opacity", self.prune_opacity),
             ("lr_sh", self.lr_sh),
             ("lr_sh_rest_inverse", self.lr_sh_rest_inverse),
             ("lr_opacity", self.lr_opacity),

@@ -6,7 +6,10 @@
 //! `densify_and_prune`, with ḡ = accum / count (0 when never seen) and s_max = max(s_u, s_v):
 //! - clone: ḡ ≥ threshold and s_max ≤ percent_dense · extent → an identical copy is appended;
 //! - split: ḡ ≥ threshold and s_max > percent_dense · extent (original surfels only, not the
-//!   clones) → 2 new surfels at μ + z_u s_u t_u + z_v s_v t_v (z ~ N(0, 1): a sample of the 2D
+//!   clones); with `abs_grad_threshold` > 0 (AbsGS, as PGSR and GOF use it) the split test is
+//!   instead ḡ_abs ≥ abs_grad_threshold, ḡ_abs the mean of the homodirectional statistic
+//!   (per pixel |∂L/∂μ₂D| summed, so the pixels of a large surfel that pull its centre opposite
+//!   ways do not cancel: on textureless walls such surfels otherwise never split) → 2 new surfels at μ + z_u s_u t_u + z_v s_v t_v (z ~ N(0, 1): a sample of the 2D
 //!   Gaussian in its tangent plane), scales / (0.8 · 2), other parameters copied; the original
 //!   is removed;
 //! - prune: opacity < min_opacity, and when `max_screen_size` is given (2DGS: 20 px after the
@@ -29,6 +32,8 @@ pub struct DensifyStats {
     /// Σ over views of |∂L/∂μ_ndc| (2D view-space positional gradient, NDC units as 3DGS/2DGS:
     /// the pixel-space gradient times (W/2, H/2)).
     pub grad_accum: Vec<f32>,
+    /// Σ over views of the AbsGS statistic |(Σ_pixels |∂L_p/∂x|, Σ_pixels |∂L_p/∂y|)| (NDC units).
+    pub abs_accum: Vec<f32>,
     /// Number of views in which the surfel was visible.
     pub denom: Vec<f32>,
     /// Largest screen-space radius (pixels) seen since the last densification.
@@ -37,7 +42,7 @@ pub struct DensifyStats {
 
 impl DensifyStats {
     pub fn new(n: usize) -> Self {
-        DensifyStats { grad_accum: vec![0.0; n], denom: vec![0.0; n], max_radii: vec![0.0; n] }
+        DensifyStats { grad_accum: vec![0.0; n], abs_accum: vec![0.0; n], denom: vec![0.0; n], max_radii: vec![0.0; n] }
     }
 
     pub fn len(&self) -> usize {
@@ -48,14 +53,18 @@ impl DensifyStats {
     }
 
     /// Add one view: `v_means2d_ndc[i]` the 2D positional gradient of surfel i (NDC units),
-    /// `radii[i]` its screen radius in pixels (≤ 0: not visible in this view, ignored).
-    pub fn add_view(&mut self, v_means2d_ndc: &[[f32; 2]], radii: &[f32]) {
+    /// `v_abs_ndc[i]` its AbsGS per-axis sums of per-pixel absolute values (same units), `radii[i]`
+    /// its screen radius in pixels (≤ 0: not visible in this view, ignored).
+    pub fn add_view(&mut self, v_means2d_ndc: &[[f32; 2]], v_abs_ndc: &[[f32; 2]], radii: &[f32]) {
         assert_eq!(v_means2d_ndc.len(), self.len());
+        assert_eq!(v_abs_ndc.len(), self.len());
         assert_eq!(radii.len(), self.len());
         for i in 0..self.len() {
             if radii[i] > 0.0 {
                 let g = v_means2d_ndc[i];
                 self.grad_accum[i] += (g[0] * g[0] + g[1] * g[1]).sqrt();
+                let a = v_abs_ndc[i];
+                self.abs_accum[i] += (a[0] * a[0] + a[1] * a[1]).sqrt();
                 self.denom[i] += 1.0;
                 self.max_radii[i] = self.max_radii[i].max(radii[i]);
             }
@@ -67,12 +76,19 @@ impl DensifyStats {
         if self.denom[i] > 0.0 { self.grad_accum[i] / self.denom[i] } else { 0.0 }
     }
 
+    /// Mean accumulated AbsGS statistic per surfel (0 where never visible).
+    pub fn mean_abs_grad(&self, i: usize) -> f32 {
+        if self.denom[i] > 0.0 { self.abs_accum[i] / self.denom[i] } else { 0.0 }
+    }
+
     fn retain_mask(&mut self, keep: &[bool]) {
         let mut k = keep.iter();
         self.max_radii.retain(|_| *k.next().unwrap());
         let n = self.max_radii.len();
         self.grad_accum.clear();
         self.grad_accum.resize(n, 0.0);
+        self.abs_accum.clear();
+        self.abs_accum.resize(n, 0.0);
         self.denom.clear();
         self.denom.resize(n, 0.0);
     }
@@ -82,6 +98,8 @@ impl DensifyStats {
 pub struct DensifyConfig {
     /// ḡ threshold for clone/split (2DGS densify_grad_threshold 2e-4).
     pub grad_threshold: f32,
+    /// ḡ_abs threshold for split (AbsGS: 8e-4); 0 = split on ḡ as 2DGS.
+    pub abs_grad_threshold: f32,
     /// Prune below this opacity (0.05).
     pub min_opacity: f32,
     /// Clone/split boundary as a fraction of the scene extent (0.01).
@@ -92,7 +110,13 @@ pub struct DensifyConfig {
 
 impl Default for DensifyConfig {
     fn default() -> Self {
-        DensifyConfig { grad_threshold: 2e-4, min_opacity: 0.05, percent_dense: 0.01, world_size_factor: 0.1 }
+        DensifyConfig {
+            grad_threshold: 2e-4,
+            abs_grad_threshold: 0.0,
+            min_opacity: 0.05,
+            percent_dense: 0.01,
+            world_size_factor: 0.1,
+        }
     }
 }
 
@@ -132,14 +156,21 @@ pub fn densify_and_prune(
     let mut clone_idx = Vec::new();
     let mut split_idx = Vec::new();
     let mut split_sel = vec![false; n0];
+    let use_abs = cfg.abs_grad_threshold > 0.0;
     for i in 0..n0 {
-        if stats.mean_grad(i) >= cfg.grad_threshold {
-            if max_scale(surfels, i) <= big {
-                clone_idx.push(i);
+        let small = max_scale(surfels, i) <= big;
+        let clone = small && stats.mean_grad(i) >= cfg.grad_threshold;
+        let split = !small
+            && if use_abs {
+                stats.mean_abs_grad(i) >= cfg.abs_grad_threshold
             } else {
-                split_idx.push(i);
-                split_sel[i] = true;
-            }
+                stats.mean_grad(i) >= cfg.grad_threshold
+            };
+        if clone {
+            clone_idx.push(i);
+        } else if split {
+            split_idx.push(i);
+            split_sel[i] = true;
         }
     }
     surfels.append_copies(&clone_idx);
@@ -354,12 +385,35 @@ mod tests {
         assert_ne!(run(5), run(6));
     }
 
+    /// With the AbsGS threshold the homodirectional statistic decides the splits (large
+    /// surfels) and only those: clones still follow the plain gradient.
+    #[test]
+    fn abs_gradient_decides_splits_only() {
+        let (mut s, mut adam, mut st) = setup();
+        // Large: 3, 4, 5 (plain gradient above), 11 (below). Small 7: plain below, abs above.
+        for i in 0..12 {
+            st.abs_accum[i] = 2.0 * if [4, 5, 7, 11].contains(&i) { 1e-3 } else { 1e-4 };
+        }
+        let cfg = DensifyConfig { abs_grad_threshold: 8e-4, ..DensifyConfig::default() };
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(1);
+        let r = densify_and_prune(&mut s, &mut adam, &mut st, &cfg, 1.0, None, &mut rng);
+        // Clones 0, 1, 2 (small, plain ≥ 2e-4); splits 4, 5, 11 (large, abs ≥ 8e-4), not 3.
+        assert_eq!((r.cloned, r.split), (3, 3));
+        // Each split original is replaced by two samples; surfel 3 and the small 7 stay single.
+        let count = |tag: f32| s.roughness_logits.iter().filter(|&&t| t == tag).count();
+        for (tag, want) in [(100.0, 2), (103.0, 1), (104.0, 2), (105.0, 2), (107.0, 1), (111.0, 2)] {
+            assert_eq!(count(tag), want, "surfel {}", tag - 100.0);
+        }
+    }
+
     #[test]
     fn stats_and_opacity_reset() {
         let mut st = DensifyStats::new(3);
-        st.add_view(&[[3.0, 4.0], [1.0, 0.0], [9.0, 9.0]], &[2.0, 7.0, 0.0]);
-        st.add_view(&[[0.0, 1.0], [1.0, 0.0], [9.0, 9.0]], &[4.0, 1.0, 0.0]);
+        st.add_view(&[[3.0, 4.0], [1.0, 0.0], [9.0, 9.0]], &[[6.0, 8.0], [1.0, 0.0], [1.0, 1.0]], &[2.0, 7.0, 0.0]);
+        st.add_view(&[[0.0, 1.0], [1.0, 0.0], [9.0, 9.0]], &[[0.0, 2.0], [0.0, 3.0], [1.0, 1.0]], &[4.0, 1.0, 0.0]);
         assert_eq!(st.grad_accum, vec![6.0, 2.0, 0.0]);
+        assert_eq!(st.abs_accum, vec![12.0, 4.0, 0.0]);
+        assert_eq!(st.mean_abs_grad(0), 6.0);
         assert_eq!(st.denom, vec![2.0, 2.0, 0.0]);
         assert_eq!(st.max_radii, vec![4.0, 7.0, 0.0]);
         assert_eq!(st.mean_grad(0), 3.0);

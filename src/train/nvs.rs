@@ -197,6 +197,7 @@ impl NvsState {
         c.put_surfels("adam_m", &self.adam.m);
         c.put_surfels("adam_v", &self.adam.v);
         c.put("stats.grad_accum", self.stats.grad_accum.clone());
+        c.put("stats.abs_accum", self.stats.abs_accum.clone());
         c.put("stats.denom", self.stats.denom.clone());
         c.put("stats.max_radii", self.stats.max_radii.clone());
         if let Some(light) = &self.light {
@@ -230,6 +231,8 @@ impl NvsState {
         adam.step = meta_u64("adam_step")?;
         let stats = DensifyStats {
             grad_accum: c.require(path, "stats.grad_accum")?.to_vec(),
+            // Checkpoints before the AbsGS statistic: start it at zero.
+            abs_accum: c.blob("stats.abs_accum").map_or_else(|| vec![0.0; surfels.len()], <[f32]>::to_vec),
             denom: c.require(path, "stats.denom")?.to_vec(),
             max_radii: c.require(path, "stats.max_radii")?.to_vec(),
         };
@@ -307,6 +310,8 @@ pub struct Losses {
     pub normal_dispersion: f32,
     /// Mean binary entropy of the surfel opacities (0 while the regulariser is off).
     pub opacity_entropy: f32,
+    /// Mean SH energy beyond the DC term (0 while the penalty is off).
+    pub sh_rest: f32,
     /// Stage `init` only.
     pub init: InitLosses,
 }
@@ -346,6 +351,8 @@ fn iterate(
             distortion: use_dist,
             ..Outputs::none()
         },
+        // AbsGS's statistic only while densification can use it.
+        abs_centre_gradient: cfg.densify_abs_grad_threshold > 0.0 && iteration < cfg.at(cfg.densify_until),
         ..RasterSettings::default()
     };
     let t0 = Instant::now();
@@ -474,7 +481,7 @@ fn iterate(
     let bwd =
         raster::render_backward(&state.surfels, cam, &settings, features, &fwd, &scratch.grads, v_surfels, v_features);
     if state.stats.len() == state.surfels.len() {
-        state.stats.add_view(&bwd.v_mean2d, &fwd.radii);
+        state.stats.add_view(&bwd.v_mean2d, &bwd.v_mean2d_abs, &fwd.radii);
     }
     scratch.recorder.recycle(&mut fwd);
     let t3 = Instant::now();
@@ -580,6 +587,7 @@ pub fn run_stage(
     };
     let densify_cfg = DensifyConfig {
         grad_threshold: cfg.densify_grad_threshold,
+        abs_grad_threshold: cfg.densify_abs_grad_threshold,
         min_opacity: cfg.prune_opacity,
         percent_dense: cfg.percent_dense,
         ..DensifyConfig::default()
@@ -638,6 +646,12 @@ pub fn run_stage(
             );
             last.opacity_entropy = e;
             last.total += cfg.lambda_opacity_entropy * e;
+        }
+        if cfg.lambda_sh_rest > 0.0 {
+            let e =
+                loss::sh_rest_energy(&state.surfels.sh, state.surfels.sh_degree, cfg.lambda_sh_rest, &mut v_surfels.sh);
+            last.sh_rest = e;
+            last.total += cfg.lambda_sh_rest * e;
         }
 
         let t_opt = Instant::now();
@@ -714,6 +728,7 @@ pub fn run_stage(
                 "stage": stage.name(), "iteration": it, "loss": last.total, "l1": last.l1, "dssim": last.dssim,
                 "mask": last.mask, "distortion": last.distortion, "normal": last.normal, "psnr": last.psnr,
                 "opacity_entropy": last.opacity_entropy, "normal_dispersion": last.normal_dispersion,
+                "sh_rest": last.sh_rest,
                 "smooth_normal": last.smooth_normal,
                 "surfels": state.surfels.len(), "seconds": started.elapsed().as_secs_f64(),
             });

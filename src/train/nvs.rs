@@ -236,7 +236,8 @@ impl NvsState {
             denom: c.require(path, "stats.denom")?.to_vec(),
             max_radii: c.require(path, "stats.max_radii")?.to_vec(),
         };
-        if adam.m.len() != surfels.len() || stats.len() != surfels.len() {
+        let stat_rows = [stats.grad_accum.len(), stats.abs_accum.len(), stats.max_radii.len(), stats.len()];
+        if adam.m.len() != surfels.len() || stat_rows.iter().any(|&r| r != surfels.len()) {
             return Err(Error::format(path, "optimiser state", "row count differs from the surfel count"));
         }
         let extent = c.meta.get("extent").and_then(|v| v.as_f64()).unwrap_or(1.0) as f32;

@@ -89,14 +89,6 @@ pub fn render_backward(
     let proj = &state.proj;
     let mut v_mean2d = vec![[0.0f32; 2]; n];
     let mut v_mean2d_abs = vec![[0.0f32; 2]; n];
-    let row_sum = |i: usize, out: &mut [f32]| {
-        for g in bins.pair_offsets[i]..bins.pair_offsets[i + 1] {
-            let p = bins.sorted_of_gen[g as usize] as usize;
-            for (o, r) in out.iter_mut().zip(&rows[p * stride..(p + 1) * stride]) {
-                *o += *r;
-            }
-        }
-    };
     (
         v_surfels.means.par_iter_mut(),
         v_surfels.log_scales.par_iter_mut(),
@@ -113,7 +105,7 @@ pub fn render_backward(
                 return;
             }
             let mut acc = [0.0f32; ROW_MAX_FIXED];
-            row_sum_fixed(&rows, bins, i, stride, &mut acc[..feat0]);
+            row_sum(&rows, bins, i, stride, &mut acc[..feat0]);
             let g = ProjGrad {
                 v_tu: [acc[ROW_TU], acc[ROW_TU + 1], acc[ROW_TU + 2]],
                 v_tv: [acc[ROW_TV], acc[ROW_TV + 1], acc[ROW_TV + 2]],
@@ -135,7 +127,7 @@ pub fn render_backward(
         assert_eq!(vf.len(), n * nch);
         vf.par_chunks_mut(nch).enumerate().for_each(|(i, out)| {
             let mut acc = [0.0f32; ROW_MAX_FIXED + MAX_FEATURES];
-            row_sum(i, &mut acc[..stride]);
+            row_sum(&rows, bins, i, stride, &mut acc[..stride]);
             for ch in 0..nch {
                 out[ch] += acc[feat0 + ch];
             }
@@ -144,7 +136,8 @@ pub fn render_backward(
     BackwardOutput { v_mean2d, v_mean2d_abs }
 }
 
-fn row_sum_fixed(rows: &[f32], bins: &super::tiles::TileBins, i: usize, stride: usize, out: &mut [f32]) {
+/// Sum surfel i's (tile, surfel) rows over their first `out.len()` columns into `out`.
+fn row_sum(rows: &[f32], bins: &super::tiles::TileBins, i: usize, stride: usize, out: &mut [f32]) {
     let m = out.len();
     for g in bins.pair_offsets[i]..bins.pair_offsets[i + 1] {
         let p = bins.sorted_of_gen[g as usize] as usize;

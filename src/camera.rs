@@ -159,6 +159,23 @@ impl Camera {
         (self.position(), (self.rotation.transpose() * d_cam).normalize())
     }
 
+    /// The camera of the image shrunk by an integer `factor` in blocks (`Image::downscale`):
+    /// pixel j covers the old pixels [j·f, (j + 1)·f), so the intrinsics divide by f exactly,
+    /// and the size rounds down (the rows and columns that fill no block are dropped).
+    pub fn downscaled(&self, factor: u32) -> Camera {
+        let f = factor.max(1);
+        let s = 1.0 / f as f32;
+        Camera {
+            width: self.width / f,
+            height: self.height / f,
+            fx: self.fx * s,
+            fy: self.fy * s,
+            cx: self.cx * s,
+            cy: self.cy * s,
+            ..self.clone()
+        }
+    }
+
     /// Same camera with the image scaled by `factor` (e.g. 0.5 for half resolution).
     pub fn scaled(&self, width: u32, height: u32) -> Camera {
         let sx = width as f32 / self.width as f32;

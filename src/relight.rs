@@ -235,7 +235,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;
     let extent = crate::pbr_scene::scene_extent(run);
     let start = cfg.ray_start(extent);
-    let cameras: Vec<Camera> = match crate::io::dataset::Dataset::open(&cfg.data) {
+    let cameras: Vec<Camera> = match crate::io::dataset::Dataset::open_downscaled(&cfg.data, cfg.resolution) {
         Ok(d) => d.train.iter().map(|v| v.camera.clone()).collect(),
         Err(_) => Vec::new(),
     };

@@ -36,6 +36,15 @@ fn missing_dataset_is_a_clear_error() {
 }
 
 #[test]
+fn a_width_given_as_resolution_is_refused_by_name() {
+    let dir = temp_dir("res");
+    let (code, _, err) =
+        radiogs(&["train", "--data", dir.to_str().unwrap(), "--out", dir.join("run").to_str().unwrap(), "-r", "800"]);
+    assert_eq!(code, 1);
+    assert!(err.contains("resolution") && err.contains("not a width") && !err.contains("panicked"), "{err}");
+}
+
+#[test]
 fn malformed_json_and_truncated_png_name_the_file() {
     let dir = temp_dir("json");
     std::fs::write(dir.join("transforms_train.json"), "{\"camera_angle_x\": 0.7, \"frames\": [").unwrap();

@@ -193,6 +193,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
         no_relight: true,
         relight_iters: 10,
         relight_samples: 8,
+        resolution: None,
     })
     .unwrap();
     let metrics: serde_json::Value =

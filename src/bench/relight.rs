@@ -32,7 +32,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
     let cfg = crate::eval::load_run_config(&args.run)?;
     let surfels = crate::eval::load_run_surfels(&args.run)?;
-    let dataset = crate::io::dataset::Dataset::open(&cfg.data)?;
+    let dataset = crate::io::dataset::Dataset::open_downscaled(&cfg.data, cfg.resolution)?;
     let Some(view) = dataset.test.first().or(dataset.train.first()) else {
         anyhow::bail!("{}: the run's dataset has no views", cfg.data.display());
     };

@@ -110,6 +110,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         no_relight: false,
         relight_iters: args.relight_iters,
         relight_samples: 64,
+        resolution: None,
     })?;
     eprintln!("[4/4] writing the report");
     let report = args.out.join("report.html");

@@ -127,7 +127,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                     crate::io::dataset::read_transforms_sized(&root, cameras, size)?
                 }
                 None => {
-                    crate::io::dataset::Dataset::open(&cfg.data)
+                    crate::io::dataset::Dataset::open_downscaled(&cfg.data, cfg.resolution)
                         .with_context(|| {
                             format!("the dataset of run {} (give --cameras to render other views)", run.display())
                         })?

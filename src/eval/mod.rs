@@ -39,6 +39,10 @@ pub struct EvalArgs {
     /// Incident directions per surfel for the ray-traced relighting.
     #[arg(long, default_value_t = 64)]
     pub relight_samples: usize,
+    /// Evaluate on the test images shrunk by this factor (default: the run's `--resolution`,
+    /// as 3DGS evaluates at its training `-r`; 1 = the files' full size).
+    #[arg(short = 'r', long)]
+    pub resolution: Option<u32>,
 }
 
 /// The run's surfels: `point_cloud.ply`, else the newest nvs/init checkpoint's parameters.
@@ -376,8 +380,7 @@ fn eval_relight(
             }
             let setup = t0.elapsed().as_secs_f64();
             for (k, view) in views.iter().enumerate() {
-                let Some(gt_path) = view.relit_path(&name) else { continue };
-                let gt = crate::io::image::read_rgba(&gt_path)?;
+                let Some(gt) = view.load_relit(&name)? else { continue };
                 let cam = &view.camera;
                 let tf = Instant::now();
                 let pred = match &traced_scene {
@@ -434,7 +437,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         None if !cfg.data.as_os_str().is_empty() => cfg.data.clone(),
         None => anyhow::bail!("{}: the run has no config.toml naming its dataset; pass --data DIR", args.run.display()),
     };
-    let dataset = Dataset::open(&data)?;
+    let factor = args.resolution.unwrap_or(cfg.resolution);
+    let dataset = Dataset::open_downscaled(&data, factor)?;
     let mut views = dataset.views(Split::Test).to_vec();
     if views.is_empty() {
         anyhow::bail!("{}: the dataset has no test views", data.display());
@@ -530,6 +534,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         "dataset": data.display().to_string(),
         "run": args.run.display().to_string(),
         "views": per_view.len(),
+        "downscale": factor,
+        "resolution": [views[0].camera.width, views[0].camera.height],
         "surfels": surfels.len(),
         "protocol": "PSNR/SSIM per view on the full image, prediction and GT composited over white, then averaged; \
                      SSIM 11x11 Gaussian sigma 1.5; normal MAE in degrees over all pixels, background (GT alpha < 0.5) counting as 0",

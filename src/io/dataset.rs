@@ -38,9 +38,14 @@ impl Split {
 /// One posed view: its camera, its image file and the folder holding its GT passes.
 #[derive(Clone, Debug)]
 pub struct View {
+    /// The camera at the resolution images are loaded at (the files' size / `downscale`).
     pub camera: Camera,
     pub image_path: PathBuf,
     pub folder: PathBuf,
+    /// Size of the image files, which every file of the view must have.
+    pub file_size: (u32, u32),
+    /// Images and passes load shrunk by this factor (`Image::downscale`; 1 = as stored).
+    pub downscale: u32,
 }
 
 /// Ground-truth passes a view may have (each present only if its file exists).
@@ -85,10 +90,22 @@ impl View {
     /// roughness stay as stored (sRGB-encoded albedo, linear roughness).
     pub fn load_pass(&self, pass: Pass) -> Result<Option<Image>> {
         let Some(path) = self.pass_path(pass) else { return Ok(None) };
-        let mut img = read_rgba(&path)?;
-        self.check_size(&path, &img)?;
-        if pass == Pass::Normal && path.extension().is_some_and(|e| e == "png") {
-            img.map_channels(3, |v| v * 2.0 - 1.0);
+        let mut img = self.load_file(&path)?;
+        if pass == Pass::Normal {
+            if path.extension().is_some_and(|e| e == "png") {
+                img.map_channels(3, |v| v * 2.0 - 1.0);
+            }
+            // A block's mean normal is shorter than 1: unit again.
+            if self.downscale > 1 {
+                let c = img.channels;
+                for px in img.data.chunks_exact_mut(c) {
+                    let n = &mut px[..3.min(c)];
+                    let len = n.iter().map(|v| v * v).sum::<f32>().sqrt();
+                    if len > 1e-12 {
+                        n.iter_mut().for_each(|v| *v /= len);
+                    }
+                }
+            }
         }
         Ok(Some(img))
     }
@@ -99,24 +116,27 @@ impl View {
         p.is_file().then_some(p)
     }
 
-    pub fn load_image(&self) -> Result<Image> {
-        let img = read_rgba(&self.image_path)?;
-        self.check_size(&self.image_path, &img)?;
-        Ok(img)
+    /// The image relit under env `name`, if present (at the camera's resolution).
+    pub fn load_relit(&self, name: &str) -> Result<Option<Image>> {
+        self.relit_path(name).map(|p| self.load_file(&p)).transpose()
     }
 
-    fn check_size(&self, path: &Path, img: &Image) -> Result<()> {
-        if img.width != self.camera.width || img.height != self.camera.height {
+    pub fn load_image(&self) -> Result<Image> {
+        self.load_file(&self.image_path)
+    }
+
+    /// Read one of the view's files, check its size and shrink it to the camera's.
+    fn load_file(&self, path: &Path) -> Result<Image> {
+        let img = read_rgba(path)?;
+        let (w, h) = self.file_size;
+        if img.width != w || img.height != h {
             return Err(Error::format(
                 path,
                 "size",
-                format!(
-                    "{}×{} but the camera says {}×{}",
-                    img.width, img.height, self.camera.width, self.camera.height
-                ),
+                format!("{}×{} but the camera says {}×{}", img.width, img.height, w, h),
             ));
         }
-        Ok(())
+        Ok(img.downscale(self.downscale))
     }
 }
 
@@ -203,6 +223,27 @@ impl Dataset {
         Ok(Dataset { root: root.to_path_buf(), layout, train, test, envmaps, train_env })
     }
 
+    /// Open a dataset whose images load shrunk by `factor` (3DGS/2DGS's `-r 2|4|8`): cameras
+    /// scaled to match, files checked at their stored size.
+    pub fn open_downscaled(root: &Path, factor: u32) -> Result<Dataset> {
+        let mut ds = Dataset::open(root)?;
+        if factor == 0 {
+            return Err(Error::invalid("resolution", "the downscale factor must be at least 1"));
+        }
+        for view in ds.train.iter_mut().chain(ds.test.iter_mut()) {
+            let (w, h) = view.file_size;
+            if w < factor || h < factor {
+                return Err(Error::invalid(
+                    "resolution",
+                    format!("downscale factor {factor} leaves no pixel of the {w}×{h} view {}", view.camera.name),
+                ));
+            }
+            view.camera = view.camera.downscaled(factor);
+            view.downscale = factor;
+        }
+        Ok(ds)
+    }
+
     pub fn views(&self, split: Split) -> &[View] {
         match split {
             Split::Train => &self.train,
@@ -233,7 +274,18 @@ impl Dataset {
 
     /// A one-line summary: layout, views per split, resolution, GT passes and env maps.
     pub fn summary(&self) -> String {
-        let res = self.train.first().map(|v| format!("{}×{}", v.camera.width, v.camera.height)).unwrap_or_default();
+        let res = self
+            .train
+            .first()
+            .map(|v| {
+                let shrunk = if v.downscale > 1 {
+                    format!(" (files {}×{} shrunk {}×)", v.file_size.0, v.file_size.1, v.downscale)
+                } else {
+                    String::new()
+                };
+                format!("{}×{}{shrunk}", v.camera.width, v.camera.height)
+            })
+            .unwrap_or_default();
         let passes: Vec<&str> = self.passes_found().iter().map(|p| p.name()).collect();
         let relit = self.relit_found();
         let envs: Vec<&str> = self.envmaps.iter().map(|(n, _)| n.as_str()).collect();
@@ -334,7 +386,7 @@ pub fn read_transforms_sized(root: &Path, path: &Path, size: Option<(u32, u32)>)
         let camera = Camera::from_blender(name, c2w, w, h, angle)
             .map_err(|e| camera_error(path, &field("transform_matrix"), e))?;
         let folder = image_path.parent().unwrap_or(root).to_path_buf();
-        views.push(View { camera, image_path, folder });
+        views.push(View { camera, image_path, folder, file_size: (w, h), downscale: 1 });
     }
     Ok(views)
 }
@@ -377,7 +429,13 @@ fn read_tensoir_view(folder: &Path) -> Result<View> {
     let name = folder.file_name().unwrap_or_default().to_string_lossy().to_string();
     let camera = Camera::from_blender(name, c2w, w as u32, h as u32, angle)
         .map_err(|e| camera_error(&meta_path, "cam_transform_mat", e))?;
-    Ok(View { camera, image_path: folder.join("rgba.png"), folder: folder.to_path_buf() })
+    Ok(View {
+        camera,
+        image_path: folder.join("rgba.png"),
+        folder: folder.to_path_buf(),
+        file_size: (w as u32, h as u32),
+        downscale: 1,
+    })
 }
 
 #[cfg(test)]
@@ -416,6 +474,65 @@ mod tests {
         assert_eq!(ds.train.len(), 3);
         assert_eq!(ds.load_images(Split::Train).unwrap().len(), 3);
         assert!(ds.summary().contains("3 train / 0 test views at 8×8"));
+    }
+
+    #[test]
+    fn downscaled_dataset_shrinks_images_passes_and_cameras_together() {
+        let dir = temp_dir("downscale");
+        // 9 × 6 files: by 2, 4 × 3 (the last column fills no block).
+        let mut list = Vec::new();
+        for i in 0..2 {
+            list.push(format!(r#"{{"file_path": "./train/r_{i}", "transform_matrix": {C2W}}}"#));
+            let mut img = Image::new(9, 6, 4);
+            for y in 0..6 {
+                for x in 0..9 {
+                    img.pixel_mut(x, y).copy_from_slice(&[x as f32 / 8.0, y as f32 / 5.0, 0.5, 1.0]);
+                }
+            }
+            write_image(&dir.join(format!("train/r_{i}.png")), &img).unwrap();
+        }
+        // A normal pass (PNG, encoded (n + 1)/2) whose 2 × 2 blocks mix two directions.
+        let mut normal = Image::new(9, 6, 4);
+        for y in 0..6 {
+            for x in 0..9 {
+                let n = if x % 2 == 0 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+                normal.pixel_mut(x, y).copy_from_slice(&[(n[0] + 1.0) / 2.0, (n[1] + 1.0) / 2.0, 0.5, 1.0]);
+            }
+        }
+        write_image(&dir.join("train/normal.png"), &normal).unwrap();
+        std::fs::write(
+            dir.join("transforms_train.json"),
+            format!(r#"{{"camera_angle_x": 0.69, "frames": [{}]}}"#, list.join(",")),
+        )
+        .unwrap();
+        let full = Dataset::open(&dir).unwrap();
+        let half = Dataset::open_downscaled(&dir, 2).unwrap();
+        let (c1, c2) = (&full.train[0].camera, &half.train[0].camera);
+        assert_eq!((c2.width, c2.height), (4, 3));
+        assert_eq!((c2.fx, c2.fy, c2.cx, c2.cy), (c1.fx / 2.0, c1.fy / 2.0, c1.cx / 2.0, c1.cy / 2.0));
+        // A point projects to half the pixel coordinates (pixel j covers old pixels 2j, 2j + 1).
+        let p = glam::Vec3::new(0.03, -0.02, 0.1);
+        let (u1, v1) = c1.project(p).unwrap();
+        let (u2, v2) = c2.project(p).unwrap();
+        assert!((u2 - u1 / 2.0).abs() < 1e-5 && (v2 - v1 / 2.0).abs() < 1e-5);
+        // The image is the block mean of the file (8-bit PNG values).
+        let img = half.train[1].load_image().unwrap();
+        let file = full.train[1].load_image().unwrap();
+        assert_eq!((img.width, img.height), (4, 3));
+        assert_eq!(img, file.downscale(2));
+        assert!((img.pixel(1, 2)[0] - (2.5 / 8.0)).abs() < 3e-3, "{:?}", img.pixel(1, 2));
+        // Passes too; normals come back unit length ((1,0,0) + (0,1,0) → (1,1,0)/√2).
+        let n = half.train[0].load_pass(Pass::Normal).unwrap().unwrap();
+        assert_eq!((n.width, n.height), (4, 3));
+        let px = n.pixel(0, 0);
+        let len = (px[0] * px[0] + px[1] * px[1] + px[2] * px[2]).sqrt();
+        assert!((len - 1.0).abs() < 1e-5 && (px[0] - px[1]).abs() < 1e-2, "{px:?}");
+        assert!(half.summary().contains("4×3 (files 9×6 shrunk 2×)"), "{}", half.summary());
+        // Factors that leave nothing, or none at all, are refused by name.
+        let err = Dataset::open_downscaled(&dir, 7).unwrap_err().to_string();
+        assert!(err.contains("resolution") && err.contains("9×6"), "{err}");
+        let err = Dataset::open_downscaled(&dir, 0).unwrap_err().to_string();
+        assert!(err.contains("resolution"), "{err}");
     }
 
     #[test]

@@ -38,6 +38,53 @@ impl Image {
         }
         out
     }
+    /// Shrink by an integer `factor`: each output pixel is the mean of a factor × factor block
+    /// (the right and bottom `size mod factor` pixels, which fill no block, are dropped, so
+    /// output pixel j covers exactly input pixels [j·factor, (j + 1)·factor) and a camera
+    /// scales by 1/factor). With 4 channels the colour is averaged weighted by alpha (straight
+    /// alpha: a half-covered edge pixel keeps the object's colour) and alpha is averaged;
+    /// values are averaged as stored (PNG sRGB-encoded, as PIL's resize in 3DGS/2DGS).
+    pub fn downscale(&self, factor: u32) -> Image {
+        let f = factor.max(1);
+        if f == 1 {
+            return self.clone();
+        }
+        let (w, h, c) = ((self.width / f) as usize, (self.height / f) as usize, self.channels);
+        let fu = f as usize;
+        let mut out = Image::new(w as u32, h as u32, c);
+        let inv = 1.0 / (fu * fu) as f64;
+        let mut sum = vec![0.0f64; c];
+        for y in 0..h {
+            for x in 0..w {
+                sum.iter_mut().for_each(|v| *v = 0.0);
+                let mut alpha_weighted = [0.0f64; 3];
+                for sy in y * fu..(y + 1) * fu {
+                    let row = sy * self.width as usize;
+                    for sx in x * fu..(x + 1) * fu {
+                        let px = &self.data[(row + sx) * c..(row + sx + 1) * c];
+                        for (acc, &v) in sum.iter_mut().zip(px) {
+                            *acc += v as f64;
+                        }
+                        if c == 4 {
+                            for k in 0..3 {
+                                alpha_weighted[k] += px[k] as f64 * px[3] as f64;
+                            }
+                        }
+                    }
+                }
+                let dst = out.pixel_mut(x as u32, y as u32);
+                for k in 0..c {
+                    dst[k] = (sum[k] * inv) as f32;
+                }
+                if c == 4 && sum[3] > 0.0 {
+                    for k in 0..3 {
+                        dst[k] = (alpha_weighted[k] / sum[3]) as f32;
+                    }
+                }
+            }
+        }
+        out
+    }
     /// Apply `f` to every value of the first `n` channels (e.g. colour but not alpha).
     pub fn map_channels(&mut self, n: usize, f: impl Fn(f32) -> f32) {
         let c = self.channels;
@@ -262,6 +309,38 @@ pub fn write_image(path: &Path, img: &Image) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn downscale_averages_blocks_weighting_colour_by_alpha() {
+        // 5 × 3 RGBA by 2: a 2 × 1 result; column 4 and row 2 fill no block and are dropped.
+        let mut img = Image::new(5, 3, 4);
+        for y in 0..3 {
+            for x in 0..5 {
+                let v = (y * 5 + x) as f32;
+                img.pixel_mut(x, y).copy_from_slice(&[v, 2.0 * v, 0.5, 1.0]);
+            }
+        }
+        // Block (0, 0): pixels 0, 1, 5, 6; one of them transparent with another colour.
+        img.pixel_mut(1, 0).copy_from_slice(&[100.0, 100.0, 100.0, 0.0]);
+        let small = img.downscale(2);
+        assert_eq!((small.width, small.height, small.channels), (2, 1, 4));
+        // Colour: the three opaque pixels only; alpha: the mean of all four.
+        let expect0 = [(0.0 + 5.0 + 6.0) / 3.0, 2.0 * (0.0 + 5.0 + 6.0) / 3.0, 0.5, 0.75];
+        for k in 0..4 {
+            assert!((small.pixel(0, 0)[k] - expect0[k]).abs() < 1e-6, "{k}: {:?}", small.pixel(0, 0));
+        }
+        let expect1 = [(2.0 + 3.0 + 7.0 + 8.0) / 4.0, (4.0 + 6.0 + 14.0 + 16.0) / 4.0, 0.5, 1.0];
+        for k in 0..4 {
+            assert!((small.pixel(1, 0)[k] - expect1[k]).abs() < 1e-5, "{k}: {:?}", small.pixel(1, 0));
+        }
+        // A fully transparent block keeps the plain mean (no division by zero).
+        let clear = Image { width: 2, height: 2, channels: 4, data: vec![0.2, 0.4, 0.6, 0.0].repeat(4) };
+        assert_eq!(clear.downscale(2).data, vec![0.2, 0.4, 0.6, 0.0]);
+        // One channel: the plain mean; factor 1: the same image.
+        let grey = Image { width: 2, height: 2, channels: 1, data: vec![1.0, 2.0, 3.0, 6.0] };
+        assert_eq!(grey.downscale(2).data, vec![3.0]);
+        assert_eq!(img.downscale(1), img);
+    }
 
     #[test]
     fn srgb_round_trip() {

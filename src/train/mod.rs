@@ -19,7 +19,7 @@ use config::{Stage, TrainConfig};
 /// `radiogs train`: validate, write `RUN/config.toml`, run the requested stage(s).
 pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     cfg.validate()?;
-    let dataset = Dataset::open(&cfg.data)?;
+    let dataset = Dataset::open_downscaled(&cfg.data, cfg.resolution)?;
     std::fs::create_dir_all(&cfg.out).map_err(|e| crate::Error::io(&cfg.out, e))?;
     cfg.save(&cfg.out.join("config.toml"))?;
     eprintln!("{}", dataset.summary());

@@ -164,22 +164,15 @@ impl Camera {
     /// and the size rounds down (the rows and columns that fill no block are dropped).
     pub fn downscaled(&self, factor: u32) -> Camera {
         let f = factor.max(1);
-        let s = 1.0 / f as f32;
-        Camera {
-            width: self.width / f,
-            height: self.height / f,
-            fx: self.fx * s,
-            fy: self.fy * s,
-            cx: self.cx * s,
-            cy: self.cy * s,
-            ..self.clone()
-        }
+        self.resized(self.width / f, self.height / f, 1.0 / f as f32, 1.0 / f as f32)
     }
 
-    /// Same camera with the image scaled by `factor` (e.g. 0.5 for half resolution).
+    /// Same camera with the image scaled to `width` × `height` (intrinsics by the size ratio).
     pub fn scaled(&self, width: u32, height: u32) -> Camera {
-        let sx = width as f32 / self.width as f32;
-        let sy = height as f32 / self.height as f32;
+        self.resized(width, height, width as f32 / self.width as f32, height as f32 / self.height as f32)
+    }
+
+    fn resized(&self, width: u32, height: u32, sx: f32, sy: f32) -> Camera {
         Camera { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, ..self.clone() }
     }
 }

@@ -139,6 +139,21 @@ pub fn render_backward(
 /// Sum surfel i's (tile, surfel) rows over their first `out.len()` columns into `out`.
 fn row_sum(rows: &[f32], bins: &super::tiles::TileBins, i: usize, stride: usize, out: &mut [f32]) {
     let m = out.len();
+    // The rows sit wherever their tiles' depth sorts put them, and each surfel's projection
+    // backward is long enough that the core never reaches the next surfel's loads early: ask
+    // for the rows of the surfel two ahead now, so their cache misses overlap this work
+    // (measured: the training backward −15 %, BENCHMARKS.md session 16).
+    #[cfg(target_arch = "x86_64")]
+    if i + 3 < bins.pair_offsets.len() {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        for g in bins.pair_offsets[i + 2]..bins.pair_offsets[i + 3] {
+            let at = bins.sorted_of_gen[g as usize] as usize * stride;
+            for line in (0..m).step_by(16) {
+                // SAFETY: prefetching is a hint; the address is inside `rows`.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(rows.as_ptr().add(at + line) as *const i8) };
+            }
+        }
+    }
     for g in bins.pair_offsets[i]..bins.pair_offsets[i + 1] {
         let p = bins.sorted_of_gen[g as usize] as usize;
         for (o, r) in out.iter_mut().zip(&rows[p * stride..p * stride + m]) {

@@ -92,6 +92,11 @@ pub struct RenderArgs {
     #[arg(long)]
     #[serde(default)]
     pub height: Option<u32>,
+    /// With --run and no --cameras: render its test views shrunk by this factor (default the
+    /// run's `--resolution`; 1 = the dataset's full size).
+    #[arg(short = 'r', long)]
+    #[serde(default)]
+    pub resolution: Option<u32>,
     /// Rasterised surfels or ray-traced surfels.
     #[arg(long, value_enum, default_value_t = RenderMode::Surfel)]
     #[serde(default)]
@@ -127,7 +132,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                     crate::io::dataset::read_transforms_sized(&root, cameras, size)?
                 }
                 None => {
-                    crate::io::dataset::Dataset::open_downscaled(&cfg.data, cfg.resolution)
+                    crate::io::dataset::Dataset::open_downscaled(&cfg.data, args.resolution.unwrap_or(cfg.resolution))
                         .with_context(|| {
                             format!("the dataset of run {} (give --cameras to render other views)", run.display())
                         })?
@@ -316,6 +321,7 @@ mod tests {
             aux: true,
             width: None,
             height: None,
+            resolution: None,
             mode: RenderMode::Surfel,
             envmap: None,
         };

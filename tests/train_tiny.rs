@@ -292,4 +292,27 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
     let (p_half, p_full) = (half["mean"]["psnr"].as_f64().unwrap(), full["mean"]["psnr"].as_f64().unwrap());
     // Trained at 16², the views are learnt there; the full-size render is of the same scene.
     assert!(p_half > 28.0 && p_full > 20.0, "PSNR at 16² {p_half}, at 32² {p_full}");
+    // `render --run` draws the test views at the run's factor, or at the one given.
+    use radiogs::commands::render::{ImageFormat, RenderArgs, RenderMode};
+    for (resolution, size) in [(None, 16), (Some(1), 32)] {
+        let out = run.join(format!("render-{size}"));
+        radiogs::commands::render::run(&RenderArgs {
+            run: Some(run.clone()),
+            ply: None,
+            cameras: None,
+            out: out.clone(),
+            k: 8,
+            two_sided: false,
+            format: ImageFormat::Png,
+            aux: false,
+            width: None,
+            height: None,
+            resolution,
+            mode: RenderMode::Surfel,
+            envmap: None,
+        })
+        .unwrap();
+        let img = radiogs::io::image::read_rgba(&out.join("r_0.png")).unwrap();
+        assert_eq!((img.width, img.height), (size, size));
+    }
 }

@@ -313,8 +313,10 @@ mod tests {
         };
         let (white, black) = (shade(1.0), shade(0.0));
         let coverage = 1.0 - 10f32.to_radians().sin().powi(2);
+        // Seen along its normal: the Lambert lobe is weighted by 1 − E(1, r) (shade/brdf.rs).
+        let kd = crate::shade::brdf::diffuse_weight(1.0, mats.roughness[0] as f64).0 as f32;
         for c in 0..3 {
-            let lambert = white[c] - black[c];
+            let lambert = (white[c] - black[c]) / kd;
             assert!((lambert - l[c] * coverage).abs() < 2e-3 * l[c], "{c}: {lambert} vs {}", l[c] * coverage);
         }
     }

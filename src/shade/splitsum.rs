@@ -555,7 +555,9 @@ impl SplitSum {
         let (p, _, _) = self.prefiltered(refl, r);
         let lut = BrdfLut::get().lookup(ndv.clamp(super::brdf::COS_EPS, 1.0), r);
         let spec = super::brdf::F0 * lut.a + lut.b;
-        ([a[0] * irr[0], a[1] * irr[1], a[2] * irr[2]], scale(p, spec))
+        // The Lambert base under the specular layer (brdf.rs): weighted by 1 − E(NoV, r).
+        let kd = super::brdf::diffuse_weight(ndv, r).0;
+        ([a[0] * irr[0] * kd, a[1] * irr[1] * kd, a[2] * irr[2] * kd], scale(p, spec))
     }
 
     /// The specular lobe alone with occlusion: (F0·A(NoV, r) + B(NoV, r)) · (o·P(R, r) + fill),
@@ -634,18 +636,22 @@ impl SplitSum {
         grads: &mut SplitSumGrads,
     ) -> PointGrads {
         let (a, r, n, wo, v) = (to64(a), r as f64, to64(n), to64(wo), to64(v_rgb));
-        // Diffuse.
+        // Diffuse: a ⊙ irr(n) · kd(NoV, r).
         let (irr, jirr) = env_lookup_grad(&self.irradiance, n);
-        let v_albedo = [v[0] * irr[0], v[1] * irr[1], v[2] * irr[2]];
-        let v_irr = [v[0] * a[0], v[1] * a[1], v[2] * a[2]];
+        let (kd, dkd_dnov, dkd_dr) = super::brdf::diffuse_weight(dot(n, wo), r);
+        let v_albedo = [v[0] * irr[0] * kd, v[1] * irr[1] * kd, v[2] * irr[2] * kd];
+        let v_irr = [v[0] * a[0] * kd, v[1] * a[1] * kd, v[2] * a[2] * kd];
+        let v_kd = v[0] * a[0] * irr[0] + v[1] * a[1] * irr[1] + v[2] * a[2] * irr[2];
         env_lookup_scatter(&self.irradiance, n, v_irr, &mut grads.v_irradiance);
-        let mut v_n = [0.0; 3];
+        let mut v_n = scale(wo, v_kd * dkd_dnov);
         for ch in 0..3 {
             v_n = add(v_n, scale(jirr[ch], v_irr[ch]));
         }
         // Specular.
         let (v_r, v_ns, v_wo) = self.specular_lobe_backward(r, n, wo, 1.0, [0.0; 3], v, grads);
         let v_n = add(v_n, v_ns);
+        let v_wo = add(v_wo, scale(n, v_kd * dkd_dnov));
+        let v_r = v_r + v_kd * dkd_dr;
         PointGrads { v_albedo: to32(v_albedo), v_roughness: v_r as f32, v_n: to32(v_n), v_wo: to32(v_wo) }
     }
 
@@ -850,8 +856,9 @@ mod tests {
             let (d, s) = ss.shade64([1.0; 3], r, n, wo);
             let lut = BrdfLut::get().lookup(dot(n, wo).min(1.0), r);
             let k = super::super::brdf::F0 * lut.a + lut.b;
+            // A white base under the specular layer reflects 1 − E: with the lobe, all of it.
             for (ch, l) in [1.7, 0.4, 2.5].iter().enumerate() {
-                assert!((d[ch] - l).abs() < 1e-5 * l, "diffuse {d:?}");
+                assert!((d[ch] - l * (1.0 - k)).abs() < 1e-5 * l, "diffuse {d:?}");
                 assert!((s[ch] - l * k).abs() < 1e-5 * l, "specular {s:?} vs {}", l * k);
             }
         }

@@ -994,7 +994,7 @@ mod tests {
         let spec = crate::shade::brdf::F0 * lut.a + lut.b;
         let coverage = 1.0 - 10f64.to_radians().sin().powi(2);
         for c in 0..3 {
-            let want = mats.albedo[0][c] as f64 * l[c] as f64 * coverage + l[c] as f64 * spec;
+            let want = mats.albedo[0][c] as f64 * (1.0 - spec) * l[c] as f64 * coverage + l[c] as f64 * spec;
             let got = sh.features[c] as f64;
             assert!((got - want).abs() < 3e-3 * l[c] as f64, "channel {c}: {got} vs {want}");
             assert_eq!(sh.features[7 + c], 0.0, "no indirect light");
@@ -1003,7 +1003,7 @@ mod tests {
         let mut mc = SurfelShading::default();
         mc.compute(&s, &mats, &cache, &env, None, &cam, VIEW_CHANNELS);
         for c in 0..3 {
-            let lambert = mats.albedo[0][c] as f64 * l[c] as f64 * coverage;
+            let lambert = mats.albedo[0][c] as f64 * (1.0 - spec) * l[c] as f64 * coverage;
             let mc_spec = mc.features[c] as f64 - lambert;
             assert!(mc_spec > 0.0 && (mc_spec - l[c] as f64 * spec).abs() < 0.5 * l[c] as f64 * spec + 1e-3);
         }

@@ -365,7 +365,8 @@ mod tests {
     #[test]
     fn init_pass_gradients_match_finite_differences() {
         for two_sided in [true, false] {
-            let mut rg = rand_pcg::Pcg64::seed_from_u64(if two_sided { 11 } else { 12 });
+            // Seeds whose consistency residuals stay clear of the L1 kink by more than the FD steps.
+            let mut rg = rand_pcg::Pcg64::seed_from_u64(if two_sided { 11 } else { 13 });
             let cfg = TrainConfig { env_height: 16, lambda_simple_rc: 0.3, two_sided, ..TrainConfig::default() };
             let s = scene(&mut rg);
             let l = light(&mut rg, &cfg);
@@ -440,7 +441,7 @@ mod tests {
         }
     }
 
-    /// Furnace: under a constant light L, a surfel's split-sum colour is a·L + L·(F0·A + B)
+    /// Furnace: under a constant light L, a surfel's split-sum colour is a·(1 − E)·L + E·L, E = F0·A + B
     /// (Ē = L, P = L); a back-facing surfel in two-sided mode shades exactly like its twin
     /// flipped to face the camera.
     #[test]
@@ -466,7 +467,8 @@ mod tests {
         let lut = crate::shade::splitsum::BrdfLut::get().lookup(nov, sh.roughness[0] as f64);
         let spec = crate::shade::brdf::F0 * lut.a + lut.b;
         for c in 0..3 {
-            let want = (sh.albedo[0][c] as f64 + spec) * l_rgb[c] as f64;
+            // The base layer gets what the specular layer leaves: a·(1 − E) + E.
+            let want = (sh.albedo[0][c] as f64 * (1.0 - spec) + spec) * l_rgb[c] as f64;
             assert!((sh.pbr[0][c] as f64 - want).abs() < 2e-3 * want, "channel {c}: {} vs {want}", sh.pbr[0][c]);
             // (Equal up to rounding: the twin's quaternion is built from −n.)
             assert!((sh.pbr[0][c] - sh.pbr[1][c]).abs() < 1e-6, "the turned twin shades the same");

@@ -351,3 +351,47 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
     assert!((mean - ALBEDO).abs() < 0.08, "albedo after the gauge {mean} (truth {ALBEDO}, start {})", 0.5 * ALBEDO);
     assert!((mean_light - LIGHT).abs() < 0.2 * LIGHT, "light after the gauge {mean_light} (truth {LIGHT})");
 }
+
+/// The inverse stage re-orients (and twins) the surfels of a two-sided geometry stage, whose
+/// normals are arbitrary, but keeps a back-face-culled geometry's orientation as trained: its
+/// hidden sides were never rendered, so a flip would bring untrained surfels into view.
+#[test]
+fn inverse_keeps_the_orientation_of_a_culled_geometry_stage() {
+    let count_up = |s: &Surfels| (0..s.len()).filter(|&i| s.normal(i)[2] > 0.0).count();
+    for geometry_two_sided in [true, false] {
+        let tag = if geometry_two_sided { "orient2" } else { "orient1" };
+        let data = temp_dir(&format!("{tag}-data"));
+        let mut gt = make_dataset(&data);
+        let dataset = Dataset::open(&data).unwrap();
+        let run = temp_dir(&format!("{tag}-run"));
+        // Every other surfel of the plane faces down, away from all four cameras above it.
+        for i in (0..gt.len()).step_by(2) {
+            gt.quats[i] = quat_with_normal([0.0, 0.0, -1.0]);
+        }
+        let up_before = count_up(&gt);
+        assert_eq!(up_before, gt.len() / 2);
+        let mut c = Checkpoint {
+            meta: serde_json::json!({"stage": "nvs", "iteration": 1, "two_sided": geometry_two_sided}),
+            ..Default::default()
+        };
+        c.put_surfels("params", &gt);
+        c.save(&radiogs::train::nvs::checkpoint_path(&run)).unwrap();
+        let cfg = TrainConfig {
+            inverse_iters: 1,
+            pbr_samples: 8,
+            rc_rays: 8,
+            rc_surfels: 16,
+            two_sided: geometry_two_sided,
+            ..tiny_config(&data, &run)
+        };
+        cfg.save(&run.join("config.toml")).unwrap();
+        radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+        let after = radiogs::io::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
+        assert_eq!(after.len(), gt.len(), "no twins on a plane seen from one side");
+        if geometry_two_sided {
+            assert_eq!(count_up(&after), gt.len(), "two-sided geometry: every surfel turned to the cameras");
+        } else {
+            assert_eq!(count_up(&after), up_before, "culled geometry: orientation kept");
+        }
+    }
+}

@@ -114,16 +114,24 @@ impl InverseState {
         cameras: &[Camera],
         extent: f32,
         kept_light: Option<Vec<f32>>,
+        geometry_two_sided: bool,
     ) -> crate::Result<InverseState> {
         let n0 = surfels.len();
-        let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
-        tracing::info!(
-            "inverse: oriented {n0} surfels towards the cameras that see them: {} flipped, {} seen from both sides \
-             doubled, {} unseen",
-            o.flipped,
-            o.doubled,
-            o.unseen
-        );
+        if geometry_two_sided {
+            let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
+            tracing::info!(
+                "inverse: oriented {n0} surfels towards the cameras that see them: {} flipped, {} seen from both \
+                 sides doubled, {} unseen",
+                o.flipped,
+                o.doubled,
+                o.unseen
+            );
+        } else {
+            // A geometry trained with back-face culling already has the normals this stage
+            // renders with: a two-sided vote would flip surfels no camera ever saw from the side
+            // it now faces (their appearance was never trained) into view.
+            tracing::info!("inverse: the geometry stage culled back faces; its {n0} surfels keep their orientation");
+        }
         if kept_light.is_none() {
             surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
             surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
@@ -684,7 +692,9 @@ pub fn run_until(
         } else {
             None
         };
-        InverseState::from_nvs(cfg, surfels, &images.cameras, extent, kept)?
+        // Checkpoints from before the field were all two-sided.
+        let two_sided = c.meta.get("two_sided").and_then(|v| v.as_bool()).unwrap_or(true);
+        InverseState::from_nvs(cfg, surfels, &images.cameras, extent, kept, two_sided)?
     };
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;

@@ -190,6 +190,8 @@ impl NvsState {
                 "adam_step": self.adam.step,
                 "seed": cfg.seed,
                 "iters": cfg.iters,
+                // The inverse stage re-orients a two-sided geometry's normals, not a culled one's.
+                "two_sided": cfg.two_sided,
             }),
             ..Default::default()
         };

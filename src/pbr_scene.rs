@@ -23,6 +23,8 @@ pub struct PbrScene {
     pub cache: IncidentCache,
     pub mats: MaterialView,
     pub window: usize,
+    /// The rasteriser's screen-space filter (the training config's `filter_inv_square`).
+    pub filter_inv_square: f32,
     /// The env is box-filtered by this factor for the rendering equation's samples
     /// (`env_sample_height` of the training config).
     pub sample_factor: usize,
@@ -65,7 +67,16 @@ impl PbrScene {
         cache.refresh(&tracer, &surfels, samples, start, seed);
         let mut mats = MaterialView::default();
         mats.update(&surfels);
-        PbrScene { surfels, env, cache, mats, window, sample_factor, specular: Specular::Mc }
+        PbrScene {
+            surfels,
+            env,
+            cache,
+            mats,
+            window,
+            filter_inv_square: crate::raster::filter_inv_square_2dgs(),
+            sample_factor,
+            specular: Specular::Mc,
+        }
     }
 
     /// The scene of a run after the inverse stage (`point_cloud.ply` + `envmap.exr`), or None
@@ -86,11 +97,22 @@ impl PbrScene {
             let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, start, cfg.seed)?;
             let sample_factor = crate::train::inverse::sample_factor(&cfg);
             let specular = cfg.specular;
-            return Ok(Some(PbrScene { surfels, env, cache, mats, window: cfg.window, sample_factor, specular }));
+            let filter_inv_square = cfg.filter_inv_square;
+            return Ok(Some(PbrScene {
+                surfels,
+                env,
+                cache,
+                mats,
+                window: cfg.window,
+                filter_inv_square,
+                sample_factor,
+                specular,
+            }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
         let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
         scene.specular = cfg.specular;
+        scene.filter_inv_square = cfg.filter_inv_square;
         Ok(Some(scene))
     }
 
@@ -127,6 +149,7 @@ impl PbrScene {
         let ch = VIEW_CHANNELS;
         let settings = RasterSettings {
             window: self.window,
+            filter_inv_square: self.filter_inv_square,
             two_sided: false,
             background: bg,
             outputs: Outputs { colour: true, normal: true, ..Outputs::none() },

@@ -42,6 +42,7 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
         let cam = view.camera.scaled(size, size);
         let settings = RasterSettings {
             window: cfg.window,
+            filter_inv_square: cfg.filter_inv_square,
             two_sided: false,
             background: [1.0; 3],
             outputs: Outputs::colour_only(),
@@ -61,7 +62,7 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
             .map(|_| {
                 let t = Instant::now();
                 let p = raster::project::project(&surfels, &cam, &settings);
-                let _ = raster::tiles::bin(&p, size, size, settings.alpha_min);
+                let _ = raster::tiles::bin(&p, size, size, settings.alpha_min, settings.filter_inv_square);
                 t.elapsed().as_secs_f64() * 1e3
             })
             .collect();

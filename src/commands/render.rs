@@ -122,7 +122,8 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         _ => bail!("--width and --height must be given together and be positive"),
     };
     // The scene and cameras: a PLY + camera file, or a run (its surfels, its dataset's test views).
-    let (surfels, views, two_sided) = match (&args.run, &args.ply, &args.cameras) {
+    // A run renders with its own screen-space filter; a PLY with 2DGS's.
+    let (surfels, views, two_sided, filter_inv_square) = match (&args.run, &args.ply, &args.cameras) {
         (Some(run), None, cameras) => {
             let cfg = crate::eval::load_run_config(run)?;
             let surfels = crate::eval::load_run_surfels(run)?;
@@ -139,12 +140,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                         .test
                 }
             };
-            (surfels, views, args.two_sided || cfg.two_sided)
+            (surfels, views, args.two_sided || cfg.two_sided, cfg.filter_inv_square)
         }
         (None, Some(ply), Some(cameras)) => {
             let surfels = crate::io::ply::read_ply(ply)?;
             let root = cameras.parent().map(PathBuf::from).unwrap_or_default();
-            (surfels, crate::io::dataset::read_transforms_sized(&root, cameras, size)?, args.two_sided)
+            let views = crate::io::dataset::read_transforms_sized(&root, cameras, size)?;
+            (surfels, views, args.two_sided, crate::raster::filter_inv_square_2dgs())
         }
         _ => bail!("radiogs render needs --run RUN, or --ply F.ply with --cameras transforms.json"),
     };
@@ -157,7 +159,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         distortion: args.aux,
         surface_depth: args.aux,
     };
-    let settings = RasterSettings { window: args.k, two_sided, outputs, ..Default::default() };
+    let settings = RasterSettings { window: args.k, two_sided, outputs, filter_inv_square, ..Default::default() };
     let trace_settings = crate::trace::TraceSettings { two_sided, ..Default::default() };
     if args.mode == RenderMode::Traced && args.aux {
         bail!("--aux is only available with --mode surfel");

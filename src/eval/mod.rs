@@ -361,6 +361,7 @@ fn eval_relight(
                     cache,
                     mats: mats.clone(),
                     window: cfg.window,
+                    filter_inv_square: cfg.filter_inv_square,
                     sample_factor: crate::train::inverse::sample_factor(cfg),
                     specular: cfg.specular,
                 });
@@ -388,6 +389,7 @@ fn eval_relight(
                     None => {
                         let settings = RasterSettings {
                             window: cfg.window,
+                            filter_inv_square: cfg.filter_inv_square,
                             two_sided: false,
                             background: white,
                             outputs: Outputs::colour_only(),
@@ -450,6 +452,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let bg = [1.0f32; 3];
     let settings = RasterSettings {
         window: cfg.window,
+        filter_inv_square: cfg.filter_inv_square,
         two_sided: cfg.two_sided,
         background: bg,
         outputs: Outputs { colour: true, normal: true, ..Outputs::none() },

@@ -475,7 +475,7 @@ fn pixel_backward(
         let tw = [gat(&td.twx), gat(&td.twy), gat(&td.twz)];
         let mean2d = [gat(&td.mx), gat(&td.my)];
         let op = gat(&td.op);
-        let e = splat_eval(pxf, pyf, tu, tv, tw, mean2d);
+        let e = splat_eval(pxf, pyf, tu, tv, tw, mean2d, s.filter_inv_square);
         let (g, _, clamped) = splat_alpha(e.rho, op);
         cols[ROW_OPACITY] = clamped.select(zero, g * v_alpha);
         let v_rho = clamped.select(zero, splat(-0.5) * g * op * v_alpha);
@@ -497,8 +497,9 @@ fn pixel_backward(
             cols[ROW_TW + a] = is3d.select(px * v_k[a] + py * v_l[a] + tw_z[a], zero);
         }
         // Screen-space filter branch.
-        cols[ROW_MEAN2D] = is3d.select(zero, splat(4.0) * (mean2d[0] - px) * v_rho);
-        cols[ROW_MEAN2D + 1] = is3d.select(zero, splat(4.0) * (mean2d[1] - py) * v_rho);
+        let two_f = splat(2.0 * s.filter_inv_square);
+        cols[ROW_MEAN2D] = is3d.select(zero, two_f * (mean2d[0] - px) * v_rho);
+        cols[ROW_MEAN2D + 1] = is3d.select(zero, two_f * (mean2d[1] - py) * v_rho);
         cols[ROW_TW + 2] = is3d.select(cols[ROW_TW + 2], v_z);
         // This pixel's ∂L/∂(centre, pixels): Tu.z = x_pix · Tw.z (one branch's term is 0).
         if s.abs_centre_gradient {

@@ -2,7 +2,7 @@
 //!
 //! Per pixel (x, y) and tile candidate (rows Tu, Tv, Tw of the splat-to-pixel transform):
 //! k = x·Tw − Tu, l = y·Tw − Tv, h = k × l, (u, v) = (h.x, h.y)/h.z, ρ₃ = u² + v²,
-//! ρ₂ = 2|μ₂D − pixel|² (the 2DGS low-pass fallback, 1/filter² = 2). If ρ₃ ≤ ρ₂ the hit is
+//! ρ₂ = f|μ₂D − pixel|² (the 2DGS low-pass fallback; f = `filter_inv_square`, 2DGS: 2). If ρ₃ ≤ ρ₂ the hit is
 //! the ray–plane one, ρ = ρ₃, z = Tw·(u, v, 1); else ρ = ρ₂, z = Tw.z (centre depth).
 //! Skipped: h.z = 0 (ray parallel to the plane), z < near, α = min(0.99, o·e^{−ρ/2}) < α_min.
 //!
@@ -180,6 +180,7 @@ pub(crate) fn splat_eval(
     tv: [f32x16; 3],
     tw: [f32x16; 3],
     mean2d: [f32x16; 2],
+    filter_inv_square: f32,
 ) -> SplatEval {
     let pxv = f32x16::splat(px);
     let pyv = f32x16::splat(py);
@@ -194,7 +195,7 @@ pub(crate) fn splat_eval(
     let rho3 = u * u + v * v;
     let dx = mean2d[0] - pxv;
     let dy = mean2d[1] - pyv;
-    let rho2 = f32x16::splat(2.0) * (dx * dx + dy * dy);
+    let rho2 = f32x16::splat(filter_inv_square) * (dx * dx + dy * dy);
     let is3d = rho3.simd_le(rho2);
     let rho = is3d.select(rho3, rho2);
     let z = is3d.select(u * tw[0] + v * tw[1] + tw[2], tw[2]);
@@ -214,7 +215,8 @@ pub(crate) fn splat_alpha(rho: f32x16, opacity: f32x16) -> (f32x16, f32x16, f32x
 /// candidates; forward and backward make identical decisions through `splat_eval`).
 /// Returns the hit mask; `out` is only written when the mask is non-zero.
 #[inline(always)]
-pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alpha_min: f32, out: &mut Lanes) -> u32 {
+pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, s: &RasterSettings, out: &mut Lanes) -> u32 {
+    let (near, alpha_min) = (s.near, s.alpha_min);
     let e = splat_eval(
         px,
         py,
@@ -222,6 +224,7 @@ pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, near: f32, alph
         [load16(&td.tvx, j0), load16(&td.tvy, j0), load16(&td.tvz, j0)],
         [load16(&td.twx, j0), load16(&td.twy, j0), load16(&td.twz, j0)],
         [load16(&td.mx, j0), load16(&td.my, j0)],
+        s.filter_inv_square,
     );
     let ok = e.hz.simd_ne(f32x16::ZERO) & e.z.simd_ge(f32x16::splat(near));
     // Cheap conservative pre-test (no exp): most groups of a tile's list miss a given pixel.
@@ -523,8 +526,8 @@ fn composite_with<W: Window>(
     let mut b = PixelRun { window: w1, t: 1.0, live: two, evaluated: n, lanes: Lanes::default() };
     let mut j0 = 0;
     while j0 < td.n && (a.live || b.live) {
-        let mut ma = if a.live { eval16(td, j0, p[0].0, p[0].1, s.near, s.alpha_min, &mut a.lanes) } else { 0 };
-        let mut mb = if b.live { eval16(td, j0, p[1].0, p[1].1, s.near, s.alpha_min, &mut b.lanes) } else { 0 };
+        let mut ma = if a.live { eval16(td, j0, p[0].0, p[0].1, s, &mut a.lanes) } else { 0 };
+        let mut mb = if b.live { eval16(td, j0, p[1].0, p[1].1, s, &mut b.lanes) } else { 0 };
         // Alternate the two pixels' hits so their window chains interleave.
         while (ma | mb) != 0 {
             if ma != 0 {
@@ -736,7 +739,7 @@ fn render_impl(
         assert_eq!(f.data.len(), n * f.channels, "features must be N × channels");
     }
     let proj = project::project(surfels, camera, settings);
-    let bins = tiles::bin(&proj, w, h, settings.alpha_min);
+    let bins = tiles::bin(&proj, w, h, settings.alpha_min, settings.filter_inv_square);
     let stride = REC_FEAT + nch;
     let mut buf = vec![0.0f32; (w * h) as usize * stride];
     let evaluations: u64 = if w == 0 || h == 0 {

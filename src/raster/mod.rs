@@ -90,6 +90,15 @@ pub struct RasterSettings {
     /// The backward also sums AbsGS's statistic (`BackwardOutput::v_mean2d_abs`, else zeros):
     /// two more gradient columns per (tile, surfel) pair, so only when densification uses it.
     pub abs_centre_gradient: bool,
+    /// 1/σ² (px⁻²) of the screen-space low-pass fallback ρ₂ = f·|μ₂D − pixel|² (2DGS's
+    /// FilterInvSquare: 2, σ = 0.71 px). Larger is a sharper fallback.
+    #[serde(default = "filter_inv_square_2dgs")]
+    pub filter_inv_square: f32,
+}
+
+/// 2DGS's screen-space filter, 1/σ² = 2 px⁻²: what every run before the setting used.
+pub fn filter_inv_square_2dgs() -> f32 {
+    2.0
 }
 
 impl Default for RasterSettings {
@@ -104,6 +113,7 @@ impl Default for RasterSettings {
             alpha_min: 1.0 / 255.0,
             transmittance_min: 1e-4,
             abs_centre_gradient: false,
+            filter_inv_square: filter_inv_square_2dgs(),
         }
     }
 }

@@ -9,8 +9,8 @@
 //! Bounding box: the disk u² + v² ≤ r² (r² = 2 ln(o / α_min), where α falls to α_min) maps to
 //! a conic with dual C* = M diag(r², r², −1) Mᵀ (scaled); its tangents x = const give the box
 //! x_c ± sqrt(x_c² − C*00/C*22), x_c = C*02/C*22. When C*22 ≥ 0 the disk reaches the camera
-//! plane and the box is the whole image. The screen-space filter (ρ₂ = 2|μ₂D − pixel|²)
-//! adds a circle of radius sqrt(r²/2) about μ₂D. Culled: centre closer than `near`, back
+//! plane and the box is the whole image. The screen-space filter (ρ₂ = f|μ₂D − pixel|²)
+//! adds a circle of radius sqrt(r²/f) about μ₂D (f = `filter_inv_square`, 2DGS: 2). Culled: centre closer than `near`, back
 //! faces (unless two-sided), opacity < α_min, boxes outside the image.
 //!
 //! Parallel decomposition: rayon over surfels. Saved for backward: M rows, μ₂D, opacity,
@@ -122,7 +122,8 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
         y0 = f32::NEG_INFINITY;
         y1 = f32::INFINITY;
     }
-    let rf = (0.5 * r2).sqrt();
+    // The filter circle f·|μ₂D − p|² ≤ r².
+    let rf = (r2 / settings.filter_inv_square).sqrt();
     x0 = x0.min(mean2d[0] - rf);
     x1 = x1.max(mean2d[0] + rf);
     y0 = y0.min(mean2d[1] - rf);

@@ -2,7 +2,7 @@
 //!
 //! Per pixel: the ray through the pixel centre is intersected with every surfel's plane the
 //! DESIGN way (t = n·(μ − o)/(n·d), p = o + t d − μ, u = t_u·p/s_u, v = t_v·p/s_v), the 2DGS
-//! screen-space fallback ρ₂ = 2|μ₂D − pixel|² is applied, the hits are ordered (all by depth,
+//! screen-space fallback ρ₂ = f|μ₂D − pixel|² (f = `filter_inv_square`) is applied, the hits are ordered (all by depth,
 //! centre-depth order, or the K-window simulated with a plain Vec), then composited. The
 //! distortion is the direct double sum. No tiles, no bounding boxes.
 
@@ -199,7 +199,7 @@ pub fn render_ref(scene: &RefScene, cam: &Camera, set: &RasterSettings, order: O
                 let u = dot(s.tu, p) / s.su;
                 let v = dot(s.tv, p) / s.sv;
                 let rho3 = u * u + v * v;
-                let rho2 = 2.0 * ((s.m2d[0] - pxf).powi(2) + (s.m2d[1] - pyf).powi(2));
+                let rho2 = set.filter_inv_square as f64 * ((s.m2d[0] - pxf).powi(2) + (s.m2d[1] - pyf).powi(2));
                 // d has camera z = 1, so the hit's camera depth is t.
                 let (rho, z) = if rho3 <= rho2 { (rho3, t) } else { (rho2, s.cz) };
                 if z < near {

@@ -327,6 +327,28 @@ fn check_gradients_with(s: &Surfels, cam: &Camera, set: &RasterSettings, ch: usi
     assert!(nonzero * 3 > checked, "too few non-zero gradients ({nonzero} of {checked}): the scene is degenerate");
 }
 
+/// A sharper screen-space filter (`filter_inv_square` 8 instead of 2DGS's 2) on sub-pixel
+/// surfels, where the fallback decides most hits: the fast path matches the brute-force
+/// reference (which applies the filter independently), the setting changes the picture, and
+/// the gradients match finite differences.
+#[test]
+fn sharper_screen_filter_matches_reference_and_gradients() {
+    let cam = camera(40, 30);
+    let s = random_scene(60, 5, (0.002, 0.02), (0.3, 0.95));
+    let f = random_features(60, 3, 5);
+    let sharp = RasterSettings { window: 32, two_sided: true, filter_inv_square: 8.0, ..Default::default() };
+    let d = compare(&s, &cam, &sharp, Some((&f, 3)), Order::Full);
+    assert!(d < 2e-4, "max diff {d}");
+    let wide = RasterSettings { filter_inv_square: 2.0, ..sharp.clone() };
+    let (a, _) = render(&s, &cam, &sharp, None);
+    let (b, _) = render(&s, &cam, &wide, None);
+    let alpha_sum = |o: &RenderOutput| o.alpha.iter().map(|&v| v as f64).sum::<f64>();
+    // Coverage of a fallback blob scales as 1/f: 4× less at f = 8.
+    assert!(alpha_sum(&a) < 0.5 * alpha_sum(&b), "{} vs {}", alpha_sum(&a), alpha_sum(&b));
+    let small = random_scene(8, 31, (0.004, 0.03), (0.3, 0.9));
+    check_gradients(&small, &camera(24, 18), &RasterSettings { filter_inv_square: 8.0, ..smooth(32, true) }, 2, 3);
+}
+
 fn smooth(window: usize, two_sided: bool) -> RasterSettings {
     RasterSettings {
         window,
@@ -369,7 +391,7 @@ fn gradients_dense_pixels_many_groups_and_channels() {
     let cam = camera(16, 12);
     let set = smooth(8, true);
     let proj = super::project::project(&s, &cam, &set);
-    let bins = super::tiles::bin(&proj, cam.width, cam.height, set.alpha_min);
+    let bins = super::tiles::bin(&proj, cam.width, cam.height, set.alpha_min, set.filter_inv_square);
     let mut td = TileData::default();
     let mut most = 0;
     for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
@@ -583,13 +605,16 @@ fn surface_depth_matches_reference() {
 #[test]
 fn tile_culling_drops_only_pairs_without_hits() {
     let camera = camera(96, 80);
-    let settings = RasterSettings { two_sided: true, ..RasterSettings::default() };
     let rot: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| camera.rotation.col(c)[r] as f64));
     let tr = [camera.translation.x as f64, camera.translation.y as f64, camera.translation.z as f64];
     let org: [f64; 3] = std::array::from_fn(|a| -(0..3).map(|r| rot[r][a] * tr[r]).sum::<f64>());
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let mut dropped_total = 0usize;
-    for (seed, scale) in [(11u64, (0.02f32, 0.4f32)), (12, (0.001, 0.01)), (13, (0.1, 0.6))] {
+    // The 2DGS filter and a sharper one (a smaller filter circle the cull must follow).
+    for (seed, scale, filter) in
+        [(11u64, (0.02f32, 0.4f32), 2.0f32), (12, (0.001, 0.01), 2.0), (13, (0.1, 0.6), 2.0), (14, (0.001, 0.01), 8.0)]
+    {
+        let settings = RasterSettings { two_sided: true, filter_inv_square: filter, ..RasterSettings::default() };
         let mut scene = random_scene(400, seed, scale, (0.05, 0.99));
         // A few surfels seen nearly edge-on.
         for i in 0..20 {
@@ -597,8 +622,8 @@ fn tile_culling_drops_only_pairs_without_hits() {
             scene.quats[i] = quat_with_normal(n.to_array());
         }
         let proj = super::project::project(&scene, &camera, &settings);
-        let culled = super::tiles::bin(&proj, camera.width, camera.height, settings.alpha_min);
-        let full = super::tiles::bin(&proj, camera.width, camera.height, 0.0);
+        let culled = super::tiles::bin(&proj, camera.width, camera.height, settings.alpha_min, filter);
+        let full = super::tiles::bin(&proj, camera.width, camera.height, 0.0, filter);
         let tiles = (full.tiles_x * full.tiles_y) as usize;
         for t in 0..tiles {
             let kept: std::collections::HashSet<u32> =
@@ -637,7 +662,7 @@ fn tile_culling_drops_only_pairs_without_hits() {
                             let p = [org[0] + t * d[0] - mu[0], org[1] + t * d[1] - mu[1], org[2] + t * d[2] - mu[2]];
                             (dot(tu, p) / su).powi(2) + (dot(tv, p) / sv).powi(2)
                         };
-                        let rho2 = 2.0 * ((m2d[0] - pxf).powi(2) + (m2d[1] - pyf).powi(2));
+                        let rho2 = filter as f64 * ((m2d[0] - pxf).powi(2) + (m2d[1] - pyf).powi(2));
                         let alpha = o * (-0.5 * rho3.min(rho2)).exp();
                         assert!(
                             alpha < settings.alpha_min as f64 * 0.999,

@@ -43,7 +43,7 @@ pub(crate) fn split_by_offsets<'a, T>(mut data: &'a mut [T], offsets: &[u32]) ->
     out
 }
 
-pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32) -> TileBins {
+pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_square: f32) -> TileBins {
     let tiles_x = width.div_ceil(TILE);
     let tiles_y = height.div_ceil(TILE);
     let ntiles = (tiles_x * tiles_y) as usize;
@@ -66,7 +66,11 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32) -> TileBins {
                     // is connected and spans its box): skip the test there, it costs more than
                     // it saves on the many small surfels of training (rand 10k: +0.06 %
                     // evaluations).
-                    let footprint = if r[2] > r[0] && r[3] > r[1] { Footprint::new(p, i, alpha_min) } else { None };
+                    let footprint = if r[2] > r[0] && r[3] > r[1] {
+                        Footprint::new(p, i, alpha_min, filter_inv_square)
+                    } else {
+                        None
+                    };
                     for ty in r[1]..=r[3] {
                         for tx in r[0]..=r[2] {
                             if footprint.as_ref().is_none_or(|f| f.touches_tile(tx, ty)) {
@@ -126,7 +130,7 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32) -> TileBins {
 
 /// The pixels where a surfel's α can reach α_min: the ray–disk region ρ₃ = u² + v² ≤ r² (an
 /// ellipse in the image when the disk does not reach the camera plane) and the screen-space
-/// filter circle ρ₂ = 2|μ₂D − p|² ≤ r², r² = 2 ln(o / α_min). A tile of the bounding box that
+/// filter circle ρ₂ = f|μ₂D − p|² ≤ r², r² = 2 ln(o / α_min), f = `filter_inv_square`. A tile of the bounding box that
 /// neither touches is dropped from the surfel's list: every pixel of it would evaluate the
 /// surfel to α < α_min and skip it, so images and gradients are unchanged.
 ///
@@ -150,7 +154,7 @@ struct Footprint {
 }
 
 impl Footprint {
-    fn new(p: &Projected, i: usize, alpha_min: f32) -> Option<Footprint> {
+    fn new(p: &Projected, i: usize, alpha_min: f32, filter_inv_square: f32) -> Option<Footprint> {
         let o = p.opacity[i] as f64;
         if !(alpha_min > 0.0) || !(o > 0.0) {
             return None;
@@ -176,7 +180,7 @@ impl Footprint {
             ly,
             c: cc,
             mean: [p.mean2d[i][0] as f64, p.mean2d[i][1] as f64],
-            circle_r2: 0.5 * r2,
+            circle_r2: r2 / filter_inv_square as f64,
         };
         if !bounded || !f.c.is_finite() || !f.mean[0].is_finite() || !f.mean[1].is_finite() {
             return None; // keep the whole rectangle

@@ -88,6 +88,11 @@ pub struct TrainConfig {
     /// Per-pixel sorted window size K of the rasteriser (1 = plain 2DGS order).
     #[arg(long, default_value_t = 8)]
     pub window: usize,
+    /// 1/σ² (px⁻²) of the rasteriser's screen-space fallback filter ρ₂ = f·|μ₂D − pixel|²
+    /// (2DGS: 2, σ = 0.71 px). A run whose config predates the setting loads as 2.
+    #[arg(long, default_value_t = 2.0)]
+    #[serde(default = "crate::raster::filter_inv_square_2dgs")]
+    pub filter_inv_square: f32,
     /// Two-sided surfels (2DGS) instead of back-face culling with outward normals.
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub two_sided: bool,
@@ -383,6 +388,9 @@ impl TrainConfig {
         }
         if !(1..=32).contains(&self.window) {
             return bad("window", format!("{} is not in 1..=32", self.window));
+        }
+        if !(self.filter_inv_square.is_finite() && self.filter_inv_square > 0.0) {
+            return bad("filter_inv_square", format!("{} is not a positive number", self.filter_inv_square));
         }
         if !(0.0..=1.0).contains(&self.lambda_dssim) {
             return bad("lambda_dssim", format!("{} is not in [0, 1]", self.lambda_dssim));

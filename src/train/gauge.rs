@@ -97,6 +97,7 @@ impl Evaluator<'_> {
             );
             let settings = RasterSettings {
                 window: self.cfg.window,
+                filter_inv_square: self.cfg.filter_inv_square,
                 two_sided: false,
                 background: bg,
                 outputs: Outputs { colour: false, ..Outputs::none() },

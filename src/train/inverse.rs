@@ -118,7 +118,7 @@ impl InverseState {
     ) -> crate::Result<InverseState> {
         let n0 = surfels.len();
         if geometry_two_sided {
-            let o = orient_surfels(&mut surfels, cameras, cfg.window, 0.01 * extent);
+            let o = orient_surfels(&mut surfels, cameras, cfg.window, cfg.filter_inv_square, 0.01 * extent);
             tracing::info!(
                 "inverse: oriented {n0} surfels towards the cameras that see them: {} flipped, {} seen from both \
                  sides doubled, {} unseen",
@@ -448,6 +448,7 @@ fn iterate(
     t.shading += (t1 - t0).as_secs_f64();
     let settings = RasterSettings {
         window: cfg.window,
+        filter_inv_square: cfg.filter_inv_square,
         two_sided: false,
         background: bg,
         outputs: Outputs { colour: true, depth: true, normal: true, ..Outputs::none() },

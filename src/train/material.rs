@@ -125,6 +125,7 @@ pub fn orient_surfels(
     s: &mut Surfels,
     cameras: &[crate::camera::Camera],
     window: usize,
+    filter_inv_square: f32,
     tolerance: f32,
 ) -> Orientation {
     use crate::raster::{self, Outputs, RasterSettings};
@@ -133,6 +134,7 @@ pub fn orient_surfels(
     let mut neg = vec![0u32; n];
     let settings = RasterSettings {
         window,
+        filter_inv_square,
         two_sided: true,
         outputs: Outputs { depth: true, ..Outputs::none() },
         ..RasterSettings::default()
@@ -266,7 +268,7 @@ mod tests {
             Camera::look_at("c", p, target, 64, 64, 0.9)
         })
         .collect();
-        let o = orient_surfels(&mut s, &cams, 8, 0.05);
+        let o = orient_surfels(&mut s, &cams, 8, 2.0, 0.05);
         assert_eq!(s.len(), 200 + o.doubled);
         assert!(o.doubled >= 50, "{o:?}");
         for i in 100..200 {

@@ -344,6 +344,7 @@ fn iterate(
     let use_dispersion = cfg.lambda_normal_dispersion > 0.0 && iteration >= cfg.at(cfg.normal_from);
     let settings = RasterSettings {
         window: cfg.window,
+        filter_inv_square: cfg.filter_inv_square,
         two_sided: cfg.two_sided,
         background: bg,
         outputs: Outputs {

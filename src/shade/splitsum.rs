@@ -111,9 +111,18 @@ impl BrdfLut {
     }
 
     /// The process-wide table, computed on first use.
+    ///
+    /// Not `get_or_init`: the computation runs on the rayon pool, and a pool worker that
+    /// blocked on the lock while the initialising thread waits for that worker's jobs would
+    /// deadlock (seen in the test suite). Threads that race here each compute the same table
+    /// and the first one stored wins.
     pub fn get() -> &'static BrdfLut {
         static LUT: OnceLock<BrdfLut> = OnceLock::new();
-        LUT.get_or_init(BrdfLut::compute)
+        if let Some(lut) = LUT.get() {
+            return lut;
+        }
+        let _ = LUT.set(BrdfLut::compute());
+        LUT.get().expect("set above")
     }
 
     /// Value at node (i = NoV index, j = roughness index).
@@ -409,8 +418,10 @@ struct Filters {
 fn filters_for(h: usize, w: usize) -> Arc<Filters> {
     static CACHE: OnceLock<Mutex<Vec<Arc<Filters>>>> = OnceLock::new();
     let cache = CACHE.get_or_init(|| Mutex::new(Vec::new()));
-    let mut guard = cache.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(f) = guard.iter().find(|f| f.sizes[0] == (h, w)) {
+    // The lock is not held while the filters are built on the rayon pool (a worker waiting for
+    // it could hold a job the builder waits for): racing threads may build the same filters once
+    // each, and the first stored is kept.
+    if let Some(f) = cache.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|f| f.sizes[0] == (h, w)) {
         return f.clone();
     }
     let sizes = mip_sizes(h, w, 4);
@@ -431,6 +442,10 @@ fn filters_for(h: usize, w: usize) -> Arc<Filters> {
         .collect();
     let irradiance = build_filter(&sizes, IRRADIANCE_SRC_MIP, IRRADIANCE_MIP, 2, &|n: V3, l: V3| dot(n, l).max(0.0));
     let f = Arc::new(Filters { sizes, levels, irradiance });
+    let mut guard = cache.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(first) = guard.iter().find(|g| g.sizes[0] == (h, w)) {
+        return first.clone();
+    }
     guard.push(f.clone());
     f
 }

@@ -310,6 +310,7 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
             resolution,
             mode: RenderMode::Surfel,
             envmap: None,
+            filter_inv_square: None,
         })
         .unwrap();
         let img = radiogs::io::image::read_rgba(&out.join("r_0.png")).unwrap();

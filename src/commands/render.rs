@@ -75,6 +75,11 @@ pub struct RenderArgs {
     #[arg(long)]
     #[serde(default)]
     pub two_sided: bool,
+    /// 1/σ² (px⁻²) of the screen-space fallback filter. Default: the run's training value with
+    /// --run; 2 (the 2DGS/3DGS value) with --ply, so give 8 for a radiogs-trained PLY.
+    #[arg(long)]
+    #[serde(default)]
+    pub filter_inv_square: Option<f32>,
     /// Colour image format.
     #[arg(long, value_enum, default_value_t = ImageFormat::Png)]
     #[serde(default)]
@@ -113,6 +118,11 @@ fn default_k() -> usize {
 }
 
 pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
+    if let Some(f) = args.filter_inv_square {
+        if !(f.is_finite() && f > 0.0) {
+            bail!("--filter-inv-square {f}: must be a positive number (2 = 2DGS, 8 = radiogs's default)");
+        }
+    }
     if !(1..=raster::MAX_WINDOW).contains(&args.k) {
         bail!("--k {}: the sorting window must be in 1..={}", args.k, raster::MAX_WINDOW);
     }
@@ -140,13 +150,18 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                         .test
                 }
             };
-            (surfels, views, args.two_sided || cfg.two_sided, cfg.filter_inv_square)
+            (surfels, views, args.two_sided || cfg.two_sided, args.filter_inv_square.unwrap_or(cfg.filter_inv_square))
         }
         (None, Some(ply), Some(cameras)) => {
             let surfels = crate::io::ply::read_ply(ply)?;
             let root = cameras.parent().map(PathBuf::from).unwrap_or_default();
             let views = crate::io::dataset::read_transforms_sized(&root, cameras, size)?;
-            (surfels, views, args.two_sided, crate::raster::filter_inv_square_2dgs())
+            (
+                surfels,
+                views,
+                args.two_sided,
+                args.filter_inv_square.unwrap_or_else(crate::raster::filter_inv_square_2dgs),
+            )
         }
         _ => bail!("radiogs render needs --run RUN, or --ply F.ply with --cameras transforms.json"),
     };
@@ -326,6 +341,7 @@ mod tests {
             resolution: None,
             mode: RenderMode::Surfel,
             envmap: None,
+            filter_inv_square: None,
         };
         run(&args).unwrap();
         let png = crate::io::image::read_rgba(&out.join("front.png")).unwrap();
@@ -363,6 +379,9 @@ mod tests {
         args.mode = RenderMode::Surfel;
         args.k = 0;
         assert!(run(&args).unwrap_err().to_string().contains("--k"));
+        args.k = 8;
+        args.filter_inv_square = Some(f32::NAN);
+        assert!(run(&args).unwrap_err().to_string().contains("--filter-inv-square"));
         if std::env::var_os("RADIOGS_KEEP_TEST_OUTPUT").is_none() {
             std::fs::remove_dir_all(&dir).ok();
         }

@@ -88,9 +88,11 @@ pub struct TrainConfig {
     /// Per-pixel sorted window size K of the rasteriser (1 = plain 2DGS order).
     #[arg(long, default_value_t = 8)]
     pub window: usize,
-    /// 1/σ² (px⁻²) of the rasteriser's screen-space fallback filter ρ₂ = f·|μ₂D − pixel|²
-    /// (2DGS: 2, σ = 0.71 px). A run whose config predates the setting loads as 2.
-    #[arg(long, default_value_t = 2.0)]
+    /// 1/σ² (px⁻²) of the rasteriser's screen-space fallback filter ρ₂ = f·|μ₂D − pixel|².
+    /// 2DGS uses 2 (σ = 0.71 px); 8 (σ = 0.35 px) measured better normals and views on both
+    /// shared scenes and the demo (BENCHMARKS.md, session 18). A run whose config predates the
+    /// setting loads as 2, the value it was trained with.
+    #[arg(long, default_value_t = 8.0)]
     #[serde(default = "crate::raster::filter_inv_square_2dgs")]
     pub filter_inv_square: f32,
     /// Two-sided surfels (2DGS) instead of back-face culling with outward normals.

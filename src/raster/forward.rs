@@ -73,7 +73,7 @@ const BLEND_FEAT: usize = 7;
 const ROW_FEATURES: usize = 16 - BLEND_FEAT;
 
 impl TileData {
-    pub fn load(&mut self, p: &Projected, ids: &[u32], alpha_min: f32) {
+    pub fn load(&mut self, p: &Projected, ids: &[u32]) {
         self.n = ids.len();
         let padded = ids.len().div_ceil(16) * 16;
         self.ids.clear();
@@ -100,16 +100,9 @@ impl TileData {
         self.op.extend(ids.iter().map(|&i| p.opacity[i as usize]));
         self.op.resize(padded, 0.0);
         self.rho_max.clear();
-        self.rho_max.extend(self.op.iter().map(|&o| {
-            if !(alpha_min > 0.0) {
-                f32::INFINITY
-            } else if o > 0.0 {
-                let r = 2.0 * (o / alpha_min).ln();
-                r + r.abs() * 1e-3 + 1e-3
-            } else {
-                f32::NEG_INFINITY
-            }
-        }));
+        self.rho_max.extend(ids.iter().map(|&i| p.rho_max[i as usize]));
+        // Padding lanes (zero opacity) never pass the cut-off.
+        self.rho_max.resize(padded, f32::NEG_INFINITY);
         self.colour.clear();
         if !p.colour.is_empty() {
             self.colour.extend(ids.iter().map(|&i| p.colour[i as usize]));
@@ -839,7 +832,7 @@ fn render_tile_row(
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
-        td.load(proj, ids, s.alpha_min);
+        td.load(proj, ids);
         td.load_blend_rows(features);
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
@@ -924,11 +917,7 @@ pub fn sorting_error(state: &ForwardState, camera: &Camera, settings: &RasterSet
             || (TileData::default(), Vec::<(f32, f32)>::new()),
             |(td, list), t| {
                 let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
-                td.load(
-                    &state.proj,
-                    &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize],
-                    settings.alpha_min,
-                );
+                td.load(&state.proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize]);
                 let mut acc = [0.0f64; 4];
                 for y in (ty * TILE..((ty + 1) * TILE).min(camera.height)).filter(|y| y % step == 0) {
                     for x in (tx * TILE..((tx + 1) * TILE).min(camera.width)).filter(|x| x % step == 0) {

@@ -43,6 +43,9 @@ pub struct Projected {
     pub depth: Vec<f32>,
     /// Larger half-extent of the pixel bounding box (0 = culled).
     pub radius: Vec<f32>,
+    /// Conservative ρ cut-off: 2 ln(o/α_min) plus a margin for rounding (∞ when α_min ≤ 0).
+    /// ρ above it cannot give α ≥ α_min (see `TileData::rho_max`).
+    pub rho_max: Vec<f32>,
 }
 
 struct One {
@@ -57,6 +60,7 @@ struct One {
     rect: [u32; 4],
     depth: f32,
     radius: f32,
+    rho_max: f32,
 }
 
 const CULLED: [u32; 4] = [1, 1, 0, 0];
@@ -74,6 +78,7 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
         rect: CULLED,
         depth: 0.0,
         radius: 0.0,
+        rho_max: f32::NEG_INFINITY,
     };
     let mu = Vec3::from(s.means[i]);
     let c = cam.rotation * mu + cam.translation;
@@ -150,6 +155,8 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
     out.normal = (n * sign).to_array();
     out.sign = sign;
     out.depth = c.z;
+    // Computed once per surfel here, not per tile candidate (the ln showed in profiles).
+    out.rho_max = if settings.alpha_min > 0.0 { r2 + r2.abs() * 1e-3 + 1e-3 } else { f32::INFINITY };
     if colour {
         out.colour = sh::eval(&s.sh[i], s.sh_degree, dir.to_array());
     }
@@ -179,6 +186,7 @@ pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) ->
         p.rect.push(o.rect);
         p.depth.push(o.depth);
         p.radius.push(o.radius);
+        p.rho_max.push(o.rho_max);
     }
     p
 }

@@ -395,7 +395,7 @@ fn gradients_dense_pixels_many_groups_and_channels() {
     let mut td = TileData::default();
     let mut most = 0;
     for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
-        td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], set.alpha_min);
+        td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize]);
         let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
         for y in ty * TILE..((ty + 1) * TILE).min(cam.height) {
             for x in tx * TILE..((tx + 1) * TILE).min(cam.width) {

@@ -268,7 +268,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
         }
         RelightMode::Traced => {}
     }
-    crate::io::ply::write_ply(&args.out.join("point_cloud.ply"), &surfels)?;
+    crate::io::ply::write_ply_trained(&args.out.join("point_cloud.ply"), &surfels, Some(cfg.filter_inv_square))?;
     env.save(&args.out.join("envmap.exr"))?;
     cfg.save(&args.out.join("config.toml"))?;
     crate::io::atomic::write_atomic(&args.out.join("relight.json"), serde_json::to_string_pretty(&record)?.as_bytes())?;

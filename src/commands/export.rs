@@ -15,7 +15,8 @@ pub struct ExportArgs {
 
 pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
     let surfels = crate::eval::load_run_surfels(&args.run)?;
-    crate::io::ply::write_ply(&args.ply, &surfels)?;
+    let cfg = crate::eval::load_run_config(&args.run)?;
+    crate::io::ply::write_ply_trained(&args.ply, &surfels, Some(cfg.filter_inv_square))?;
     println!("{} surfels → {}", surfels.len(), args.ply.display());
     Ok(())
 }

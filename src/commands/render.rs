@@ -76,7 +76,7 @@ pub struct RenderArgs {
     #[serde(default)]
     pub two_sided: bool,
     /// 1/σ² (px⁻²) of the screen-space fallback filter. Default: the run's training value with
-    /// --run; 2 (the 2DGS/3DGS value) with --ply, so give 8 for a radiogs-trained PLY.
+    /// --run; with --ply the value radiogs recorded in its header, else 2 (2DGS/3DGS).
     #[arg(long)]
     #[serde(default)]
     pub filter_inv_square: Option<f32>,
@@ -156,12 +156,10 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             let surfels = crate::io::ply::read_ply(ply)?;
             let root = cameras.parent().map(PathBuf::from).unwrap_or_default();
             let views = crate::io::dataset::read_transforms_sized(&root, cameras, size)?;
-            (
-                surfels,
-                views,
-                args.two_sided,
-                args.filter_inv_square.unwrap_or_else(crate::raster::filter_inv_square_2dgs),
-            )
+            // The filter recorded by radiogs in the PLY's header, else 2DGS's.
+            let recorded = crate::io::ply::read_ply_filter_inv_square(ply)?;
+            let filter = args.filter_inv_square.or(recorded).unwrap_or_else(crate::raster::filter_inv_square_2dgs);
+            (surfels, views, args.two_sided, filter)
         }
         _ => bail!("radiogs render needs --run RUN, or --ply F.ply with --cameras transforms.json"),
     };

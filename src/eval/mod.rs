@@ -68,7 +68,12 @@ pub fn load_run_surfels(run: &Path) -> anyhow::Result<Surfels> {
 pub fn load_run_config(run: &Path) -> anyhow::Result<TrainConfig> {
     let path = run.join("config.toml");
     if !path.is_file() {
-        return Ok(TrainConfig::default());
+        // Not trained by radiogs (e.g. a 2DGS output folder): its surfels were fitted with
+        // 2DGS's screen-space filter unless a radiogs PLY header says otherwise.
+        let ply = run.join("point_cloud.ply");
+        let recorded = if ply.is_file() { crate::io::ply::read_ply_filter_inv_square(&ply)? } else { None };
+        let filter_inv_square = recorded.unwrap_or_else(crate::raster::filter_inv_square_2dgs);
+        return Ok(TrainConfig { filter_inv_square, ..TrainConfig::default() });
     }
     let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
     let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| crate::train::config::toml_error(&path, &text, &e))?;

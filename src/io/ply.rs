@@ -241,12 +241,47 @@ pub fn read_ply(path: &Path) -> Result<Surfels> {
     Ok(s)
 }
 
+/// The header comment that records the screen-space filter a radiogs PLY was trained with.
+const FILTER_COMMENT: &str = "radiogs filter_inv_square";
+
+/// The screen-space filter 1/σ² recorded in a PLY's header by [`write_ply_trained`], or None
+/// (a PLY from 2DGS/3DGS or an older radiogs: trained with 2DGS's 2).
+pub fn read_ply_filter_inv_square(path: &Path) -> Result<Option<f32>> {
+    // The header only (surfel files run to hundreds of MB).
+    let mut bytes = Vec::new();
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    std::io::Read::read_to_end(&mut std::io::Read::take(file, 1 << 20), &mut bytes).map_err(|e| Error::io(path, e))?;
+    let (_, body) = parse_header(path, &bytes)?;
+    let header = String::from_utf8_lossy(&bytes[..body]);
+    for line in header.lines() {
+        if let Some(value) = line.trim().strip_prefix("comment ").and_then(|c| c.strip_prefix(FILTER_COMMENT)) {
+            let f: f32 = value.trim().parse().map_err(|_| {
+                Error::format(path, "comment radiogs filter_inv_square", &format!("'{}' is not a number", value.trim()))
+            })?;
+            if !(f.is_finite() && f > 0.0) {
+                return Err(Error::format(path, "comment radiogs filter_inv_square", "must be a positive number"));
+            }
+            return Ok(Some(f));
+        }
+    }
+    Ok(None)
+}
+
 /// Write surfels as a 2DGS-layout binary PLY (all 45 f_rest fields) plus material fields. Atomic.
 pub fn write_ply(path: &Path, s: &Surfels) -> Result<()> {
+    write_ply_trained(path, s, None)
+}
+
+/// [`write_ply`] recording in a header comment the screen-space filter the surfels were trained
+/// with, so that `radiogs render --ply` draws them as training did.
+pub fn write_ply_trained(path: &Path, s: &Surfels, filter_inv_square: Option<f32>) -> Result<()> {
     s.validate()?;
     let mut header = String::from(
         "ply\nformat binary_little_endian 1.0\ncomment radiogs surfels (2DGS layout + albedo/roughness logits)\n",
     );
+    if let Some(f) = filter_inv_square {
+        header.push_str(&format!("comment {FILTER_COMMENT} {f}\n"));
+    }
     header.push_str(&format!("element vertex {}\n", s.len()));
     let mut names: Vec<String> =
         ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"].map(String::from).to_vec();
@@ -315,6 +350,28 @@ mod tests {
         }
         s.sh_degree = 3;
         s
+    }
+
+    #[test]
+    fn the_training_filter_is_recorded_in_the_header() {
+        let s = random_surfels(5);
+        let path = temp("filter");
+        write_ply_trained(&path, &s, Some(8.0)).unwrap();
+        assert_eq!(read_ply_filter_inv_square(&path).unwrap(), Some(8.0));
+        // The comment does not disturb the reader.
+        assert_eq!(read_ply(&path).unwrap().means, s.means);
+        write_ply(&path, &s).unwrap();
+        assert_eq!(read_ply_filter_inv_square(&path).unwrap(), None);
+        // A damaged value names the field.
+        let bytes = std::fs::read(&path).unwrap();
+        let text = String::from_utf8_lossy(&bytes[..200])
+            .replace("comment radiogs surfels", "comment radiogs filter_inv_square x");
+        let mut damaged = text.into_bytes();
+        damaged.extend_from_slice(&bytes[200..]);
+        std::fs::write(&path, &damaged).unwrap();
+        let err = read_ply_filter_inv_square(&path).unwrap_err().to_string();
+        assert!(err.contains("filter_inv_square") && err.contains("not a number"), "{err}");
+        std::fs::remove_dir_all(path.parent().unwrap()).ok();
     }
 
     #[test]

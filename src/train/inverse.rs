@@ -31,7 +31,7 @@ use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::error::Error;
 use crate::io::dataset::{Dataset, Split};
-use crate::io::ply::write_ply;
+use crate::io::ply::write_ply_trained;
 use crate::loss::{self, EdgeAwareSmoothness, NormalConsistency, Ssim};
 use crate::optim::{LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
@@ -834,7 +834,7 @@ pub fn run_until(
     bar.finish_and_clear();
     state.to_checkpoint(cfg).save(&ckpt_path)?;
     if !interrupted {
-        write_ply(&cfg.out.join("point_cloud.ply"), &state.surfels)?;
+        write_ply_trained(&cfg.out.join("point_cloud.ply"), &state.surfels, Some(cfg.filter_inv_square))?;
         state.env().save(&cfg.out.join("envmap.exr"))?;
     }
     let seconds = started.elapsed().as_secs_f64();

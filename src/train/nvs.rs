@@ -15,7 +15,7 @@
 use crate::camera::Camera;
 use crate::error::Error;
 use crate::io::dataset::{Dataset, Split};
-use crate::io::ply::{read_ply, write_ply};
+use crate::io::ply::{read_ply, write_ply_trained};
 use crate::loss::{self, NormalConsistency, Ssim};
 use crate::optim::{ExponLr, LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
@@ -767,7 +767,7 @@ pub fn run_stage(
     bar.finish_and_clear();
     state.to_checkpoint(cfg).save(&ckpt_path)?;
     if !interrupted {
-        write_ply(&cfg.out.join("point_cloud.ply"), &state.surfels)?;
+        write_ply_trained(&cfg.out.join("point_cloud.ply"), &state.surfels, Some(cfg.filter_inv_square))?;
         if let Some(light) = &state.light {
             light.env().save(&cfg.out.join("envmap.exr"))?;
         }

@@ -36,7 +36,7 @@ pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
         let info = ply::read_ply_info(path)?;
         let (lo, hi) = s.bounds().unwrap_or(([0.0; 3], [0.0; 3]));
         println!(
-            "{}: {} surfels, SH degree {}, bounds [{:.3}, {:.3}, {:.3}]–[{:.3}, {:.3}, {:.3}], material fields {}",
+            "{}: {} surfels, SH degree {}, bounds [{:.3}, {:.3}, {:.3}]–[{:.3}, {:.3}, {:.3}], material fields {}, screen-space filter 1/σ² {}",
             path.display(),
             s.len(),
             s.sh_degree,
@@ -46,7 +46,11 @@ pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
             hi[0],
             hi[1],
             hi[2],
-            if info.has_material { "yes" } else { "no (defaults)" }
+            if info.has_material { "yes" } else { "no (defaults)" },
+            match ply::read_ply_filter_inv_square(path)? {
+                Some(f) => format!("{f} (recorded)"),
+                None => "2 (not recorded: 2DGS's)".to_string(),
+            }
         );
     }
     Ok(())

@@ -267,8 +267,8 @@ pub struct TrainConfig {
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
     pub detach_rhs: bool,
     /// Geometry learning rates in the inverse stage are multiplied by this [0.05]. The published
-    /// 0.01 is for a 20k-iteration stage; over radiogs' 1.5–2k iterations 0.05 lets the surfaces
-    /// move about as far, and relights 0.3–0.6 dB better (BENCHMARKS.md, session 20).
+    /// 0.01 is for a 20k-iteration stage: over radiogs' 1.5–2k iterations it leaves the surfaces
+    /// almost where nvs put them; 0.05 relights 0.3–0.6 dB better (BENCHMARKS.md, session 20).
     #[arg(long, default_value_t = 0.05)]
     pub geometry_lr_scale: f32,
     /// Learning rate of the env map's log radiance.

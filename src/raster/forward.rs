@@ -761,40 +761,101 @@ fn render_impl(
                 .sum(),
         }
     };
-    let px = (w * h) as usize;
-    let o = settings.outputs;
-    let mut out = RenderOutput { width: w, height: h, ..Default::default() };
-    let rec = |i: usize| &buf[i * stride..(i + 1) * stride];
-    out.alpha = (0..px).into_par_iter().map(|i| rec(i)[REC_ALPHA]).collect();
-    if o.colour {
-        out.colour = (0..px).into_par_iter().map(|i| [rec(i)[0], rec(i)[1], rec(i)[2]]).collect();
-    }
-    if o.depth {
-        out.depth = (0..px).into_par_iter().map(|i| rec(i)[REC_DEPTH]).collect();
-    }
-    if o.median_depth {
-        out.median_depth = (0..px).into_par_iter().map(|i| rec(i)[REC_MEDIAN]).collect();
-    }
-    if o.normal {
-        out.normal = (0..px)
-            .into_par_iter()
-            .map(|i| [rec(i)[REC_NORMAL], rec(i)[REC_NORMAL + 1], rec(i)[REC_NORMAL + 2]])
-            .collect();
-    }
-    if o.distortion {
-        out.distortion = (0..px).into_par_iter().map(|i| rec(i)[REC_DIST]).collect();
-    }
-    if o.surface_depth {
-        out.surface_depth = (0..px).into_par_iter().map(|i| rec(i)[REC_SURFACE]).collect();
-    }
-    if nch > 0 {
-        out.features = buf.par_chunks(stride).flat_map_iter(|r| r[REC_FEAT..].iter().copied()).collect();
-    }
+    let out = split_outputs(&buf, w, h, stride, nch, settings);
     drop(buf);
     let radii = proj.radius.clone();
     let visible = radii.iter().map(|&r| r > 0.0).collect();
     let state = ForwardState { width: w, height: h, proj, tiles: bins, radii, visible, evaluations, record };
     (out, state)
+}
+
+/// The working buffer's records (`stride` floats per pixel) into the requested outputs, in
+/// one parallel pass over rows (each record is read once).
+fn split_outputs(buf: &[f32], w: u32, h: u32, stride: usize, nch: usize, s: &RasterSettings) -> RenderOutput {
+    let px = (w * h) as usize;
+    let o = s.outputs;
+    let sized = |on: bool, len: usize| if on { len } else { 0 };
+    let mut out = RenderOutput {
+        width: w,
+        height: h,
+        alpha: vec![0.0; px],
+        colour: vec![[0.0; 3]; sized(o.colour, px)],
+        depth: vec![0.0; sized(o.depth, px)],
+        median_depth: vec![0.0; sized(o.median_depth, px)],
+        normal: vec![[0.0; 3]; sized(o.normal, px)],
+        distortion: vec![0.0; sized(o.distortion, px)],
+        surface_depth: vec![0.0; sized(o.surface_depth, px)],
+        features: vec![0.0; px * nch],
+    };
+    if px == 0 {
+        return out;
+    }
+    // One job per row of pixels: its records and its slice of every requested output (None
+    // for the outputs not requested).
+    struct Row<'a> {
+        rec: &'a [f32],
+        alpha: &'a mut [f32],
+        colour: Option<&'a mut [[f32; 3]]>,
+        depth: Option<&'a mut [f32]>,
+        median: Option<&'a mut [f32]>,
+        normal: Option<&'a mut [[f32; 3]]>,
+        distortion: Option<&'a mut [f32]>,
+        surface: Option<&'a mut [f32]>,
+        features: &'a mut [f32],
+    }
+    fn rows_of<T>(v: &mut [T], w: usize) -> Vec<Option<&mut [T]>> {
+        if v.is_empty() { Vec::new() } else { v.chunks_mut(w).map(Some).collect() }
+    }
+    let wu = w as usize;
+    let mut colour = rows_of(&mut out.colour, wu).into_iter();
+    let mut depth = rows_of(&mut out.depth, wu).into_iter();
+    let mut median = rows_of(&mut out.median_depth, wu).into_iter();
+    let mut normal = rows_of(&mut out.normal, wu).into_iter();
+    let mut distortion = rows_of(&mut out.distortion, wu).into_iter();
+    let mut surface = rows_of(&mut out.surface_depth, wu).into_iter();
+    let mut features = out.features.chunks_mut((wu * nch).max(1));
+    let rows: Vec<Row> = buf
+        .chunks(wu * stride)
+        .zip(out.alpha.chunks_mut(wu))
+        .map(|(rec, alpha)| Row {
+            rec,
+            alpha,
+            colour: colour.next().flatten(),
+            depth: depth.next().flatten(),
+            median: median.next().flatten(),
+            normal: normal.next().flatten(),
+            distortion: distortion.next().flatten(),
+            surface: surface.next().flatten(),
+            features: if nch > 0 { features.next().unwrap_or_default() } else { &mut [] },
+        })
+        .collect();
+    rows.into_par_iter().for_each(|mut row| {
+        for (x, r) in row.rec.chunks_exact(stride).enumerate() {
+            row.alpha[x] = r[REC_ALPHA];
+            if let Some(c) = row.colour.as_deref_mut() {
+                c[x] = [r[REC_COLOUR], r[REC_COLOUR + 1], r[REC_COLOUR + 2]];
+            }
+            if let Some(d) = row.depth.as_deref_mut() {
+                d[x] = r[REC_DEPTH];
+            }
+            if let Some(d) = row.median.as_deref_mut() {
+                d[x] = r[REC_MEDIAN];
+            }
+            if let Some(n) = row.normal.as_deref_mut() {
+                n[x] = [r[REC_NORMAL], r[REC_NORMAL + 1], r[REC_NORMAL + 2]];
+            }
+            if let Some(d) = row.distortion.as_deref_mut() {
+                d[x] = r[REC_DIST];
+            }
+            if let Some(d) = row.surface.as_deref_mut() {
+                d[x] = r[REC_SURFACE];
+            }
+            if nch > 0 {
+                row.features[x * nch..(x + 1) * nch].copy_from_slice(&r[REC_FEAT..REC_FEAT + nch]);
+            }
+        }
+    });
+    out
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -11,8 +11,9 @@
 //! ([`Footprint`]): dropped pairs would evaluate to α < α_min at every pixel anyway.
 //!
 //! Parallel decomposition: the per-surfel tile lists (with the footprint test) are built with
-//! rayon over chunks of surfels; counting and scattering are serial O(pairs); the per-tile
-//! depth sort runs with rayon over tiles.
+//! rayon over chunks of surfels; the surfels are sorted by depth once (rayon), and counting and
+//! scattering the pairs in that order are serial O(pairs): each tile's list comes out sorted
+//! with no per-tile sort.
 
 use super::TILE;
 use super::project::Projected;
@@ -72,8 +73,10 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
                         None
                     };
                     for ty in r[1]..=r[3] {
+                        // Per row of tiles the footprint covers one or two runs of columns.
+                        let runs = footprint.as_ref().map_or([(r[0], r[2]), (1, 0)], |f| f.tile_runs(ty));
                         for tx in r[0]..=r[2] {
-                            if footprint.as_ref().is_none_or(|f| f.touches_tile(tx, ty)) {
+                            if runs.iter().any(|&(a, b)| a <= tx && tx <= b) {
                                 tiles_of.push(ty * tiles_x + tx);
                             }
                         }
@@ -102,29 +105,25 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
         counts[t + 1] += counts[t];
     }
     let offsets = counts;
+    // Surfels by (depth, index), then their pairs scattered in that order: every tile's list
+    // comes out sorted by centre depth (ties by index) without a per-tile sort, and a pair's
+    // generation number g is at hand when its position is chosen (`sorted_of_gen`).
+    let mut order: Vec<u64> = (0..n).map(|i| ((p.depth[i].to_bits() as u64) << 32) | i as u64).collect();
+    order.par_sort_unstable();
     let mut fill: Vec<u32> = offsets[..ntiles].to_vec();
-    // Key: depth bits (positive floats order as integers) then surfel index.
-    let mut keys = vec![0u64; total];
-    for i in 0..n {
-        let key = ((p.depth[i].to_bits() as u64) << 32) | i as u64;
-        for &t in &pair_tiles[pair_offsets[i] as usize..pair_offsets[i + 1] as usize] {
-            keys[fill[t as usize] as usize] = key;
+    let mut ids = vec![0u32; total];
+    let mut sorted_of_gen = vec![0u32; total];
+    for key in order {
+        let i = key as u32;
+        let (g0, g1) = (pair_offsets[i as usize] as usize, pair_offsets[i as usize + 1] as usize);
+        for (g, &t) in (g0..g1).zip(&pair_tiles[g0..g1]) {
+            let pos = fill[t as usize];
             fill[t as usize] += 1;
+            ids[pos as usize] = i;
+            sorted_of_gen[g] = pos;
         }
     }
     drop(pair_tiles);
-    split_by_offsets(&mut keys, &offsets).into_par_iter().for_each(|k| k.sort_unstable());
-    let ids: Vec<u32> = keys.iter().map(|k| *k as u32).collect();
-    drop(keys);
-    // A surfel's pairs were generated in ascending tile order, so walking the tiles in order
-    // meets them in generation order.
-    let mut sorted_of_gen = vec![0u32; total];
-    let mut next_gen: Vec<u32> = pair_offsets[..n].to_vec();
-    for (pos, &i) in ids.iter().enumerate() {
-        let g = &mut next_gen[i as usize];
-        sorted_of_gen[*g as usize] = pos as u32;
-        *g += 1;
-    }
     TileBins { tiles_x, tiles_y, offsets, ids, pair_offsets, sorted_of_gen }
 }
 
@@ -137,9 +136,10 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
 /// For pixel p = (x, y, 1) the plane point is (u, v, 1) ∝ h = x·A + y·B + C with A = T_v × T_w,
 /// B = T_w × T_u, C = T_u × T_v (the cross product the compositor evaluates), so ρ₃ ≤ r² is
 /// the quadratic f(x, y) = h₀² + h₁² − r²·h₂² ≤ 0. When its 2 × 2 part is positive definite
-/// (a bounded ellipse) the tile touches it iff the minimum of f over the tile is ≤ 0: the
-/// unconstrained minimum if it lies in the tile, else the least of the four edge minima. Other
-/// cases keep every tile. f64, with the tile grown by half a pixel and r² by 1 % (conservative).
+/// (a bounded ellipse) each row of tiles keeps the columns the ellipse's x interval within the
+/// row's band meets, and those the circle's does (`tile_runs`). Other cases keep every tile.
+/// f64, with the tiles grown by half a pixel, r² by 1 % and the intervals by 10⁻³ px
+/// (conservative).
 struct Footprint {
     /// f(x, y) = qxx x² + 2 qxy x y + qyy y² + 2 lx x + 2 ly y + c.
     qxx: f64,
@@ -151,6 +151,20 @@ struct Footprint {
     mean: [f64; 2],
     /// Squared radius of the filter circle.
     circle_r2: f64,
+    ellipse: EllipseShape,
+}
+
+/// What `tile_runs` needs of the ellipse f ≤ 0, computed once per surfel.
+#[derive(Default)]
+struct EllipseShape {
+    /// The centre's y and f there (> 0: empty; NaN: degenerate).
+    cy: f64,
+    fc: f64,
+    /// Half height.
+    half_h: f64,
+    /// The leftmost point lies at y = cy + lean, the rightmost at cy − lean.
+    lean: f64,
+    inv_qxx: f64,
 }
 
 impl Footprint {
@@ -181,46 +195,72 @@ impl Footprint {
             c: cc,
             mean: [p.mean2d[i][0] as f64, p.mean2d[i][1] as f64],
             circle_r2: r2 / filter_inv_square as f64,
+            ellipse: EllipseShape::default(),
         };
         if !bounded || !f.c.is_finite() || !f.mean[0].is_finite() || !f.mean[1].is_finite() {
             return None; // keep the whole rectangle
         }
+        let mut f = f;
+        let det = qxx * qyy - qxy * qxy;
+        let (cx, cy) = ((qxy * ly - qyy * lx) / det, (qxy * lx - qxx * ly) / det);
+        let fc = f.f(cx, cy);
+        let half_w = (-fc * qyy / det).max(0.0).sqrt();
+        let half_h = (-fc * qxx / det).max(0.0).sqrt();
+        // Extremes in x where ∂f/∂y = 0: y − cy = −(qxy / qyy)(x − cx).
+        f.ellipse = EllipseShape { cy, fc, half_h, lean: qxy / qyy * half_w, inv_qxx: 1.0 / qxx };
         Some(f)
     }
 
+    /// The columns of tile row `ty` whose tile (grown by half a pixel) the filter circle or the
+    /// ellipse touches, as two inclusive runs (a run with start > end is empty). A convex region
+    /// meets the row's band in one x interval: for the ellipse it runs from its left boundary
+    /// at the band's y nearest the leftmost point to its right boundary at the y nearest the
+    /// rightmost point (the boundary is convex in y); for the circle from the centre's row.
+    fn tile_runs(&self, ty: u32) -> [(u32, u32); 2] {
+        let t = TILE as f64;
+        let (y0, y1) = (t * ty as f64, t * (ty + 1) as f64);
+        let run = |lo: f64, hi: f64| -> (u32, u32) {
+            // A small absolute margin so that rounding never drops a touching tile.
+            let (lo, hi) = (lo - 1e-3, hi + 1e-3);
+            if !(lo <= hi) || hi < 0.0 {
+                return (1, 0);
+            }
+            ((lo.max(0.0) / t).floor().min(u32::MAX as f64) as u32, (hi / t).floor().min(u32::MAX as f64) as u32)
+        };
+        // Filter circle.
+        let dy = (y0 - self.mean[1]).max(0.0).max(self.mean[1] - y1);
+        let circle = if dy * dy <= self.circle_r2 {
+            let half = (self.circle_r2 - dy * dy).sqrt();
+            run(self.mean[0] - half, self.mean[0] + half)
+        } else {
+            (1, 0)
+        };
+        let e = &self.ellipse;
+        let ellipse = if e.fc.is_nan() {
+            (0, u32::MAX) // degenerate numbers keep the row
+        } else if e.fc > 0.0 {
+            (1, 0) // empty
+        } else {
+            let (ya, yb) = (y0.max(e.cy - e.half_h), y1.min(e.cy + e.half_h));
+            if ya.is_nan() || yb.is_nan() {
+                (0, u32::MAX)
+            } else if ya > yb {
+                (1, 0)
+            } else {
+                // x roots of f(·, y) = 0: (−(qxy y + lx) ± √D) / qxx.
+                let roots = |y: f64| {
+                    let b = self.qxy * y + self.lx;
+                    let d = (b * b - self.qxx * (self.qyy * y * y + 2.0 * self.ly * y + self.c)).max(0.0).sqrt();
+                    ((-b - d) * e.inv_qxx, (-b + d) * e.inv_qxx)
+                };
+                let left = roots((e.cy + e.lean).clamp(ya, yb)).0;
+                let right = roots((e.cy - e.lean).clamp(ya, yb)).1;
+                if left.is_finite() && right.is_finite() { run(left, right) } else { (0, u32::MAX) }
+            }
+        };
+        [circle, ellipse]
+    }
     fn f(&self, x: f64, y: f64) -> f64 {
         self.qxx * x * x + 2.0 * self.qxy * x * y + self.qyy * y * y + 2.0 * (self.lx * x + self.ly * y) + self.c
-    }
-
-    fn touches_tile(&self, tx: u32, ty: u32) -> bool {
-        let t = TILE as f64;
-        // Pixel centres of the tile lie in [t·tx + 0.5, t·tx + t − 0.5]; grown by half a pixel.
-        let (x0, x1) = (t * tx as f64, t * (tx + 1) as f64);
-        let (y0, y1) = (t * ty as f64, t * (ty + 1) as f64);
-        // Filter circle: distance from μ₂D to the tile.
-        let dx = (x0 - self.mean[0]).max(0.0).max(self.mean[0] - x1);
-        let dy = (y0 - self.mean[1]).max(0.0).max(self.mean[1] - y1);
-        if dx * dx + dy * dy <= self.circle_r2 {
-            return true;
-        }
-        // Ellipse: centre of f inside the tile?
-        let det = self.qxx * self.qyy - self.qxy * self.qxy;
-        let cx = (self.qxy * self.ly - self.qyy * self.lx) / det;
-        let cy = (self.qxy * self.lx - self.qxx * self.ly) / det;
-        if cx >= x0 && cx <= x1 && cy >= y0 && cy <= y1 {
-            return true;
-        }
-        // Else the minimum is on an edge: minimise the 1-D convex quadratic along each edge.
-        let on_vertical = |x: f64| {
-            let y = (-(self.qxy * x + self.ly) / self.qyy).clamp(y0, y1);
-            self.f(x, y)
-        };
-        let on_horizontal = |y: f64| {
-            let x = (-(self.qxy * y + self.lx) / self.qxx).clamp(x0, x1);
-            self.f(x, y)
-        };
-        let m = on_vertical(x0).min(on_vertical(x1)).min(on_horizontal(y0)).min(on_horizontal(y1));
-        // NaN (degenerate numbers) keeps the tile.
-        !(m > 0.0)
     }
 }

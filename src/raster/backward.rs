@@ -19,7 +19,9 @@
 //! summed per surfel (rayon over surfels, via `sorted_of_gen`) and pushed through the
 //! projection backward.
 
-use super::forward::{TileData, composite_two_pixels, load16, splat_alpha, splat_eval};
+use super::forward::{
+    PK_MEAN, PK_OP, PK_TU, PK_TV, PK_TW, TileData, composite_two_pixels, load16, splat_alpha, splat_eval,
+};
 use super::lanes;
 use super::project::{ProjGrad, SurfelGradSlots, project_backward_one};
 use super::tiles::split_by_offsets;
@@ -269,7 +271,7 @@ fn backward_tile_row(
         }
         let ids = &bins.ids[p0 as usize..p1 as usize];
         let tile_rows = &mut chunk[(p0 - row_start) as usize * stride..(p1 - row_start) as usize * stride];
-        td.load(proj, ids);
+        td.load(proj, ids, (tx * TILE, ty * TILE));
         hits[0].reserve_tile(td.n);
         hits[1].reserve_tile(td.n);
         let x0 = tx * TILE;
@@ -412,7 +414,8 @@ fn pixel_backward(
         let live = (n - j).min(16);
         let li: [u32; 16] = hits.li[j..j + 16].try_into().unwrap();
         let tile_n = td.n;
-        let at = lanes::Gather16::new(li, live, tile_n);
+        // Record starts 16·li (all < 16·(n − 1) + 1); lane f gathers from the records' lane f on.
+        let at_record = lanes::Gather16::new(li.map(|i| 16 * i), live, 16 * tile_n.max(1) - 15);
         let (z, alpha, t) = (load16(&hits.z, j), load16(&hits.alpha, j), load16(&hits.t, j));
         let wgt = alpha * t;
         let mut q = splat(v_a) + splat(v_dd) * z;
@@ -469,12 +472,13 @@ fn pixel_backward(
         let v_alpha = t * q - suffix / (f32x16::ONE - alpha);
 
         // α = o·G → ρ → (u, v) or μ₂D, and z.
-        let gat = |v: &[f32]| at.from(v);
-        let tu = [gat(&td.tux), gat(&td.tuy), gat(&td.tuz)];
-        let tv = [gat(&td.tvx), gat(&td.tvy), gat(&td.tvz)];
-        let tw = [gat(&td.twx), gat(&td.twy), gat(&td.twz)];
-        let mean2d = [gat(&td.mx), gat(&td.my)];
-        let op = gat(&td.op);
+        let records = td.records.as_flattened();
+        let gat = |lane: usize| at_record.from(&records[lane..]);
+        let tu = [gat(PK_TU), gat(PK_TU + 1), gat(PK_TU + 2)];
+        let tv = [gat(PK_TV), gat(PK_TV + 1), gat(PK_TV + 2)];
+        let tw = [gat(PK_TW), gat(PK_TW + 1), gat(PK_TW + 2)];
+        let mean2d = [gat(PK_MEAN), gat(PK_MEAN + 1)];
+        let op = gat(PK_OP);
         let e = splat_eval(pxf, pyf, tu, tv, tw, mean2d, s.filter_inv_square);
         let (g, _, clamped) = splat_alpha(e.rho, op);
         cols[ROW_OPACITY] = clamped.select(zero, g * v_alpha);

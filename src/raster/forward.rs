@@ -18,7 +18,10 @@
 //! features Σ w f, and (forward only) the surface-aware depth of GauS-SLAM.
 //!
 //! Parallel decomposition: rayon over rows of tiles; inside a tile, pixel by pixel over the
-//! tile's list (copied into a local structure of arrays), 16 candidates at a time (f32x16).
+//! list of the pixel's tile quarter (8 × 8: the tile's candidates whose pixel box reaches it,
+//! in tile order, so the hits and their order are the tile list's), 16 candidates at a time
+//! (f32x16, one structure of arrays per group, transposed from per-surfel packed records). A
+//! division-free test of ρ against the cut-off skips groups that cannot hit before the divide.
 //! The window is per hit: for K ≤ 16 three AVX-512 registers (branchless insert and pop),
 //! otherwise a ring buffer. The blend is scalar, inlined into the window loop: that loop waits
 //! on the window's compare → permute chain, and the blend's arithmetic fills those cycles (a
@@ -36,28 +39,66 @@ use crate::surfels::Surfels;
 use rayon::prelude::*;
 use wide::f32x16;
 
-/// One tile's candidates as a structure of arrays, padded to a multiple of 16 with zero
-/// opacity (never hit).
+/// Lanes of a packed candidate record (`Projected::packed`).
+pub(crate) const PK_TU: usize = 0;
+pub(crate) const PK_TV: usize = 3;
+pub(crate) const PK_TW: usize = 6;
+pub(crate) const PK_MEAN: usize = 9;
+pub(crate) const PK_OP: usize = 11;
+pub(crate) const PK_RHO: usize = 12;
+/// What `eval16` reads: the lanes before the box.
+const PK_FIELDS: usize = 13;
+/// The pixel box (`Projected::pixels`): x0 | x1 << 16 and y0 | y1 << 16 as bit patterns.
+const PK_BOX_X: usize = 13;
+const PK_BOX_Y: usize = 14;
+
+/// A padding record: zero opacity and a −∞ ρ cut-off (never hit).
+const PADDING: [f32; 16] = {
+    let mut r = [0.0f32; 16];
+    r[PK_RHO] = f32::NEG_INFINITY;
+    r
+};
+
+/// Candidates 16 at a time, each group one vector per record lane (structure of arrays per
+/// group: what `eval16` reads), the last group padded with never-hit records.
+#[derive(Default, Clone, Debug)]
+pub(crate) struct Candidates {
+    pub n: usize,
+    /// Each entry's index in the tile list.
+    pub slot: Vec<u32>,
+    pub groups: Vec<[f32x16; PK_FIELDS]>,
+}
+
+impl Candidates {
+    /// Fill with the tile's records at `slot` (transposed 16 at a time).
+    fn fill(&mut self, records: &[[f32; 16]]) {
+        self.n = self.slot.len();
+        self.groups.clear();
+        for chunk in self.slot.chunks(16) {
+            let rows: [f32x16; 16] =
+                std::array::from_fn(|l| f32x16::new(chunk.get(l).map_or(PADDING, |&j| records[j as usize])));
+            let cols = super::lanes::transpose(rows);
+            self.groups.push(std::array::from_fn(|f| cols[f]));
+        }
+    }
+}
+
+/// Side of a tile quarter in pixels.
+pub(crate) const QUARTER: u32 = TILE / 2;
+
+/// One tile's candidates: per candidate its packed record (`records`, what the backward
+/// gathers from) and, per quarter of the tile (8 × 8 pixels: 0 top left, 1 top right, 2 bottom
+/// left, 3 bottom right), the candidates whose pixel box (`Projected::pixels`) reaches it, in
+/// tile order. A pixel evaluates only its quarter's list: every other candidate has α < α_min
+/// there, so the hits and their order are those of the whole list, at a fraction of the
+/// evaluations when surfels are small (training).
 #[derive(Default, Clone, Debug)]
 pub(crate) struct TileData {
     pub n: usize,
     pub ids: Vec<u32>,
-    pub tux: Vec<f32>,
-    pub tuy: Vec<f32>,
-    pub tuz: Vec<f32>,
-    pub tvx: Vec<f32>,
-    pub tvy: Vec<f32>,
-    pub tvz: Vec<f32>,
-    pub twx: Vec<f32>,
-    pub twy: Vec<f32>,
-    pub twz: Vec<f32>,
-    pub mx: Vec<f32>,
-    pub my: Vec<f32>,
-    pub op: Vec<f32>,
-    /// Conservative ρ cut-off per candidate: 2 ln(o/α_min) plus a margin for rounding (−∞ for
-    /// padding). ρ above it cannot give α ≥ α_min, so a group of 16 with no lane below it skips
-    /// the exp and the per-lane stores; the exact α test still decides every hit.
-    pub rho_max: Vec<f32>,
+    pub records: Vec<[f32; 16]>,
+    pub origin: (u32, u32),
+    pub quarters: [Candidates; 4],
     /// Colour and normal per candidate (only when loaded with `shading`).
     pub colour: Vec<[f32; 3]>,
     pub normal: Vec<[f32; 3]>,
@@ -73,36 +114,43 @@ const BLEND_FEAT: usize = 7;
 const ROW_FEATURES: usize = 16 - BLEND_FEAT;
 
 impl TileData {
-    pub fn load(&mut self, p: &Projected, ids: &[u32]) {
+    /// Load the list `ids` of the tile whose first pixel is `origin`.
+    pub fn load(&mut self, p: &Projected, ids: &[u32], origin: (u32, u32)) {
         self.n = ids.len();
-        let padded = ids.len().div_ceil(16) * 16;
+        self.origin = origin;
         self.ids.clear();
         self.ids.extend_from_slice(ids);
-        macro_rules! fill {
-            ($field:ident, $src:ident, $k:expr) => {
-                self.$field.clear();
-                self.$field.extend(ids.iter().map(|&i| p.$src[i as usize][$k]));
-                self.$field.resize(padded, 0.0);
-            };
+        self.records.clear();
+        self.records.extend(ids.iter().map(|&i| p.packed[i as usize]));
+        // Which quarters each candidate's pixel box reaches, appended without branches (the
+        // outcomes are unpredictable).
+        let n = ids.len();
+        let mut lens = [0usize; 4];
+        for quarter in &mut self.quarters {
+            quarter.slot.clear();
+            quarter.slot.resize(n, 0);
         }
-        fill!(tux, tu, 0);
-        fill!(tuy, tu, 1);
-        fill!(tuz, tu, 2);
-        fill!(tvx, tv, 0);
-        fill!(tvy, tv, 1);
-        fill!(tvz, tv, 2);
-        fill!(twx, tw, 0);
-        fill!(twy, tw, 1);
-        fill!(twz, tw, 2);
-        fill!(mx, mean2d, 0);
-        fill!(my, mean2d, 1);
-        self.op.clear();
-        self.op.extend(ids.iter().map(|&i| p.opacity[i as usize]));
-        self.op.resize(padded, 0.0);
-        self.rho_max.clear();
-        self.rho_max.extend(ids.iter().map(|&i| p.rho_max[i as usize]));
-        // Padding lanes (zero opacity) never pass the cut-off.
-        self.rho_max.resize(padded, f32::NEG_INFINITY);
+        let (ox, oy) = origin;
+        let (mid_x, mid_y) = (ox + QUARTER, oy + QUARTER);
+        let (end_x, end_y) = (ox + TILE - 1, oy + TILE - 1);
+        // Boxes are stored in 16 bits: beyond that every candidate goes to every quarter.
+        let huge = end_x > u16::MAX as u32 || end_y > u16::MAX as u32;
+        for (j, r) in self.records.iter().enumerate() {
+            let (xs, ys) = (r[PK_BOX_X].to_bits(), r[PK_BOX_Y].to_bits());
+            let (bx0, bx1, by0, by1) = (xs & 0xffff, xs >> 16, ys & 0xffff, ys >> 16);
+            let left = (bx0 < mid_x) & (bx1 >= ox);
+            let right = (bx0 <= end_x) & (bx1 >= mid_x);
+            let top = (by0 < mid_y) & (by1 >= oy);
+            let bottom = (by0 <= end_y) & (by1 >= mid_y);
+            for (q, inside) in [left & top, right & top, left & bottom, right & bottom].into_iter().enumerate() {
+                self.quarters[q].slot[lens[q]] = j as u32;
+                lens[q] += (inside | huge) as usize;
+            }
+        }
+        for (quarter, &len) in self.quarters.iter_mut().zip(&lens) {
+            quarter.slot.truncate(len);
+            quarter.fill(&self.records);
+        }
         self.colour.clear();
         if !p.colour.is_empty() {
             self.colour.extend(ids.iter().map(|&i| p.colour[i as usize]));
@@ -175,6 +223,27 @@ pub(crate) fn splat_eval(
     mean2d: [f32x16; 2],
     filter_inv_square: f32,
 ) -> SplatEval {
+    splat_finish(splat_cross(px, py, tu, tv, tw, mean2d, filter_inv_square), tw)
+}
+
+/// The division-free first half of [`splat_eval`]: k, l, h = k × l and the filter's ρ₂.
+pub(crate) struct SplatCross {
+    k: [f32x16; 3],
+    l: [f32x16; 3],
+    h: [f32x16; 3],
+    rho2: f32x16,
+}
+
+#[inline(always)]
+fn splat_cross(
+    px: f32,
+    py: f32,
+    tu: [f32x16; 3],
+    tv: [f32x16; 3],
+    tw: [f32x16; 3],
+    mean2d: [f32x16; 2],
+    filter_inv_square: f32,
+) -> SplatCross {
     let pxv = f32x16::splat(px);
     let pyv = f32x16::splat(py);
     let k = [pxv * tw[0] - tu[0], pxv * tw[1] - tu[1], pxv * tw[2] - tu[2]];
@@ -182,13 +251,30 @@ pub(crate) fn splat_eval(
     let hx = k[1] * l[2] - k[2] * l[1];
     let hy = k[2] * l[0] - k[0] * l[2];
     let hz = k[0] * l[1] - k[1] * l[0];
+    let dx = mean2d[0] - pxv;
+    let dy = mean2d[1] - pyv;
+    let rho2 = f32x16::splat(filter_inv_square) * (dx * dx + dy * dy);
+    SplatCross { k, l, h: [hx, hy, hz], rho2 }
+}
+
+impl SplatCross {
+    /// Lanes that may have ρ ≤ `rho_max` (a superset: ρ = min(ρ₃, ρ₂), and ρ₃ = |h_xy|²/h_z² is
+    /// compared without the divide, whose rounding the cut-off's 10⁻³ margin covers).
+    #[inline(always)]
+    fn may_reach(&self, rho_max: f32x16) -> f32x16 {
+        let [hx, hy, hz] = self.h;
+        let near_plane = (hx * hx + hy * hy).simd_le(rho_max * (hz * hz));
+        near_plane | self.rho2.simd_le(rho_max)
+    }
+}
+
+#[inline(always)]
+fn splat_finish(c: SplatCross, tw: [f32x16; 3]) -> SplatEval {
+    let SplatCross { k, l, h: [hx, hy, hz], rho2 } = c;
     let inv = f32x16::ONE / hz;
     let u = hx * inv;
     let v = hy * inv;
     let rho3 = u * u + v * v;
-    let dx = mean2d[0] - pxv;
-    let dy = mean2d[1] - pyv;
-    let rho2 = f32x16::splat(filter_inv_square) * (dx * dx + dy * dy);
     let is3d = rho3.simd_le(rho2);
     let rho = is3d.select(rho3, rho2);
     let z = is3d.select(u * tw[0] + v * tw[1] + tw[2], tw[2]);
@@ -208,23 +294,31 @@ pub(crate) fn splat_alpha(rho: f32x16, opacity: f32x16) -> (f32x16, f32x16, f32x
 /// candidates; forward and backward make identical decisions through `splat_eval`).
 /// Returns the hit mask; `out` is only written when the mask is non-zero.
 #[inline(always)]
-pub(crate) fn eval16(td: &TileData, j0: usize, px: f32, py: f32, s: &RasterSettings, out: &mut Lanes) -> u32 {
+pub(crate) fn eval16(td: &Candidates, j0: usize, px: f32, py: f32, s: &RasterSettings, out: &mut Lanes) -> u32 {
     let (near, alpha_min) = (s.near, s.alpha_min);
-    let e = splat_eval(
+    let g = &td.groups[j0 / 16];
+    let tw = [g[PK_TW], g[PK_TW + 1], g[PK_TW + 2]];
+    let c = splat_cross(
         px,
         py,
-        [load16(&td.tux, j0), load16(&td.tuy, j0), load16(&td.tuz, j0)],
-        [load16(&td.tvx, j0), load16(&td.tvy, j0), load16(&td.tvz, j0)],
-        [load16(&td.twx, j0), load16(&td.twy, j0), load16(&td.twz, j0)],
-        [load16(&td.mx, j0), load16(&td.my, j0)],
+        [g[PK_TU], g[PK_TU + 1], g[PK_TU + 2]],
+        [g[PK_TV], g[PK_TV + 1], g[PK_TV + 2]],
+        tw,
+        [g[PK_MEAN], g[PK_MEAN + 1]],
         s.filter_inv_square,
     );
-    let ok = e.hz.simd_ne(f32x16::ZERO) & e.z.simd_ge(f32x16::splat(near));
-    // Cheap conservative pre-test (no exp): most groups of a tile's list miss a given pixel.
-    if (ok & e.rho.simd_le(load16(&td.rho_max, j0))).to_bitmask() == 0 {
+    // Cheap conservative pre-test (no divide, no exp): most groups of a tile's list miss a
+    // given pixel.
+    let rho_max = g[PK_RHO];
+    if c.may_reach(rho_max).to_bitmask() == 0 {
         return 0;
     }
-    let (_, alpha, _) = splat_alpha(e.rho, load16(&td.op, j0));
+    let e = splat_finish(c, tw);
+    let ok = e.hz.simd_ne(f32x16::ZERO) & e.z.simd_ge(f32x16::splat(near));
+    if (ok & e.rho.simd_le(rho_max)).to_bitmask() == 0 {
+        return 0;
+    }
+    let (_, alpha, _) = splat_alpha(e.rho, g[PK_OP]);
     let ok = ok & alpha.simd_ge(f32x16::splat(alpha_min));
     let mut mask = ok.to_bitmask();
     let rest = td.n - j0;
@@ -411,7 +505,7 @@ pub(crate) fn composite_pixel(
     s: &RasterSettings,
     k: usize,
     blend: impl FnMut(usize, f32, f32, f32),
-) -> (f32, u32) {
+) -> (f32, Evaluated) {
     composite_two_pixels(td, [(px, py), (px, py)], false, s, k, blend, |_, _, _, _| {})[0]
 }
 
@@ -428,13 +522,21 @@ pub(crate) fn composite_two_pixels(
     k: usize,
     blend0: impl FnMut(usize, f32, f32, f32),
     blend1: impl FnMut(usize, f32, f32, f32),
-) -> [(f32, u32); 2] {
+) -> [(f32, Evaluated); 2] {
     // Registers for K ≤ 16 with AVX-512, else the ring buffer.
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     if k <= 16 {
         return composite_with([RegWindow::new(), RegWindow::new()], td, p, two, s, k, blend0, blend1);
     }
     composite_with([RingWindow::new(), RingWindow::new()], td, p, two, s, k, blend0, blend1)
+}
+
+/// Candidates one pixel evaluated: in its quarter's list, and the entries of the whole tile
+/// list up to the same stop (what compositing over the tile list would have evaluated).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Evaluated {
+    pub performed: u32,
+    pub tile_list: u32,
 }
 
 /// One pixel's state in the candidate loop.
@@ -444,7 +546,7 @@ struct PixelRun<W> {
     /// Still compositing (not stopped by the T cut-off, or not in use).
     live: bool,
     /// Candidates evaluated (set when the pixel stops early).
-    evaluated: u32,
+    evaluated: Evaluated,
     lanes: Lanes,
 }
 
@@ -457,19 +559,20 @@ impl<W: Window> PixelRun<W> {
         &mut self,
         mask: &mut u32,
         j0: usize,
+        slots: &[u32],
         k: usize,
         t_min: f32,
         blend: &mut impl FnMut(usize, f32, f32, f32),
     ) {
         let l = mask.trailing_zeros() as usize;
         *mask &= *mask - 1;
-        let slot = (j0 + l) as u32;
+        let slot = slots[j0 + l];
         if self.window.len() == k {
             let alpha = self.window.front_alpha();
             let next = self.t * (1.0 - alpha);
             if next < t_min {
                 self.live = false;
-                self.evaluated = slot + 1;
+                self.evaluated = Evaluated { performed: (j0 + l) as u32 + 1, tile_list: slot + 1 };
                 *mask = 0;
                 return;
             }
@@ -511,23 +614,31 @@ fn composite_with<W: Window>(
     k: usize,
     mut blend0: impl FnMut(usize, f32, f32, f32),
     mut blend1: impl FnMut(usize, f32, f32, f32),
-) -> [(f32, u32); 2] {
+) -> [(f32, Evaluated); 2] {
     let t_min = s.transmittance_min;
-    let n = td.n as u32;
+    // The pixels' quarter of the tile (a pair never straddles two: pairs start at even x).
+    let quarter = |q: (f32, f32)| {
+        let right = q.0 - td.origin.0 as f32 >= QUARTER as f32;
+        let below = q.1 - td.origin.1 as f32 >= QUARTER as f32;
+        right as usize + 2 * below as usize
+    };
+    let list = &td.quarters[quarter(p[0])];
+    debug_assert!(!two || quarter(p[1]) == quarter(p[0]), "a pixel pair straddles two quarters");
+    let all = Evaluated { performed: list.n as u32, tile_list: td.n as u32 };
     let [w0, w1] = windows;
-    let mut a = PixelRun { window: w0, t: 1.0, live: true, evaluated: n, lanes: Lanes::default() };
-    let mut b = PixelRun { window: w1, t: 1.0, live: two, evaluated: n, lanes: Lanes::default() };
+    let mut a = PixelRun { window: w0, t: 1.0, live: true, evaluated: all, lanes: Lanes::default() };
+    let mut b = PixelRun { window: w1, t: 1.0, live: two, evaluated: all, lanes: Lanes::default() };
     let mut j0 = 0;
-    while j0 < td.n && (a.live || b.live) {
-        let mut ma = if a.live { eval16(td, j0, p[0].0, p[0].1, s, &mut a.lanes) } else { 0 };
-        let mut mb = if b.live { eval16(td, j0, p[1].0, p[1].1, s, &mut b.lanes) } else { 0 };
+    while j0 < list.n && (a.live || b.live) {
+        let mut ma = if a.live { eval16(list, j0, p[0].0, p[0].1, s, &mut a.lanes) } else { 0 };
+        let mut mb = if b.live { eval16(list, j0, p[1].0, p[1].1, s, &mut b.lanes) } else { 0 };
         // Alternate the two pixels' hits so their window chains interleave.
         while (ma | mb) != 0 {
             if ma != 0 {
-                a.take_next(&mut ma, j0, k, t_min, &mut blend0);
+                a.take_next(&mut ma, j0, &list.slot, k, t_min, &mut blend0);
             }
             if mb != 0 {
-                b.take_next(&mut mb, j0, k, t_min, &mut blend1);
+                b.take_next(&mut mb, j0, &list.slot, k, t_min, &mut blend1);
             }
         }
         j0 += 16;
@@ -735,8 +846,9 @@ fn render_impl(
     let bins = tiles::bin(&proj, w, h, settings.alpha_min, settings.filter_inv_square);
     let stride = REC_FEAT + nch;
     let mut buf = vec![0.0f32; (w * h) as usize * stride];
-    let evaluations: u64 = if w == 0 || h == 0 {
-        0
+    let add = |a: (u64, u64), b: (u64, u64)| (a.0 + b.0, a.1 + b.1);
+    let (evaluations_performed, evaluations) = if w == 0 || h == 0 {
+        (0, 0)
     } else {
         let chunks = buf.par_chunks_mut((TILE * w) as usize * stride).enumerate();
         match record.as_mut() {
@@ -752,20 +864,20 @@ fn render_impl(
                             render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, rec)
                         },
                     )
-                    .sum()
+                    .reduce(|| (0, 0), add)
             }
             None => chunks
                 .map_init(TileData::default, |td, (ty, chunk)| {
                     render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, None)
                 })
-                .sum(),
+                .reduce(|| (0, 0), add),
         }
     };
     let out = split_outputs(&buf, w, h, stride, nch, settings);
     drop(buf);
     let radii = proj.radius.clone();
     let visible = radii.iter().map(|&r| r > 0.0).collect();
-    let state = ForwardState { width: w, height: h, proj, tiles: bins, radii, visible, evaluations, record };
+    let state = ForwardState { width: w, height: h, proj, tiles: bins, radii, visible, evaluations, evaluations_performed, record };
     (out, state)
 }
 
@@ -874,12 +986,13 @@ fn render_tile_row(
     // The row's hit record, a scratch list for the second pixel of a pair (whose blends
     // interleave with the first's) and the row's share of the record budget.
     mut record: Option<(&mut RowHits, &mut Vec<RecordedHit>, usize)>,
-) -> u64 {
+) -> (u64, u64) {
     let w = camera.width;
     let h = camera.height;
     let k = s.k();
     let nch = features.map_or(0, |f| f.channels);
-    let mut evals = 0u64;
+    // (performed, tile-list) evaluations.
+    let mut evals = (0u64, 0u64);
     let y0 = ty * TILE;
     let y1 = (y0 + TILE).min(h);
     if let Some((row, _, _)) = record.as_mut() {
@@ -893,7 +1006,7 @@ fn render_tile_row(
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
-        td.load(proj, ids);
+        td.load(proj, ids, (tx * TILE, ty * TILE));
         td.load_blend_rows(features);
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
@@ -952,10 +1065,12 @@ fn render_tile_row(
                 };
                 let at = |x: u32| local(x) * stride;
                 sa.write(&mut chunk[at(x)..][..stride], ta, s, nch);
-                evals += eva as u64;
+                evals.0 += eva.performed as u64;
+                evals.1 += eva.tile_list as u64;
                 if two {
                     sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch);
-                    evals += evb as u64;
+                    evals.0 += evb.performed as u64;
+                    evals.1 += evb.tile_list as u64;
                 }
             }
         }
@@ -978,7 +1093,7 @@ pub fn sorting_error(state: &ForwardState, camera: &Camera, settings: &RasterSet
             || (TileData::default(), Vec::<(f32, f32)>::new()),
             |(td, list), t| {
                 let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
-                td.load(&state.proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize]);
+                td.load(&state.proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], (tx * TILE, ty * TILE));
                 let mut acc = [0.0f64; 4];
                 for y in (ty * TILE..((ty + 1) * TILE).min(camera.height)).filter(|y| y % step == 0) {
                     for x in (tx * TILE..((tx + 1) * TILE).min(camera.width)).filter(|x| x % step == 0) {

@@ -195,8 +195,11 @@ pub struct ForwardState {
     pub radii: Vec<f32>,
     /// Surfel drawn in this view (radius > 0).
     pub visible: Vec<bool>,
-    /// Surfel-pixel hit evaluations performed (pixels × tile-list entries up to early stop).
+    /// Surfel-pixel evaluations of the tile lists: per pixel the entries of its tile's list up
+    /// to early stop (what a per-tile compositor evaluates; the figure benchmarks report).
     pub evaluations: u64,
+    /// The evaluations made: each pixel goes through its tile quarter's list only.
+    pub evaluations_performed: u64,
     /// Every pixel's blended hits, when rendered by [`render_recorded`]: the backward then
     /// replays them instead of re-running each pixel's sorting window. Take it back
     /// (`state.record.take()`) to reuse its buffers in the next frame.

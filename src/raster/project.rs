@@ -43,9 +43,16 @@ pub struct Projected {
     pub depth: Vec<f32>,
     /// Larger half-extent of the pixel bounding box (0 = culled).
     pub radius: Vec<f32>,
+    /// Pixels [x0, y0, x1, y1] (inclusive) whose centre lies in the α ≥ α_min bounding box
+    /// grown by half a pixel (and 10⁻³ of its size) against rounding; [1, 1, 0, 0] when culled.
+    /// The compositor skips a group of candidates whose boxes all miss the pixel.
+    pub pixels: Vec<[u32; 4]>,
     /// Conservative ρ cut-off: 2 ln(o/α_min) plus a margin for rounding (∞ when α_min ≤ 0).
-    /// ρ above it cannot give α ≥ α_min (see `TileData::rho_max`).
+    /// ρ above it cannot give α ≥ α_min (see `forward::Candidates`).
     pub rho_max: Vec<f32>,
+    /// What the compositor evaluates per candidate, one cache line per surfel (lanes `PK_*`
+    /// of `forward`: T_u, T_v, T_w, μ₂D, opacity, ρ cut-off, the pixel box's x and y ranges).
+    pub packed: Vec<[f32; 16]>,
 }
 
 struct One {
@@ -60,6 +67,7 @@ struct One {
     rect: [u32; 4],
     depth: f32,
     radius: f32,
+    pixels: [u32; 4],
     rho_max: f32,
 }
 
@@ -78,6 +86,7 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
         rect: CULLED,
         depth: 0.0,
         radius: 0.0,
+        pixels: CULLED,
         rho_max: f32::NEG_INFINITY,
     };
     let mu = Vec3::from(s.means[i]);
@@ -145,6 +154,13 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
         return out;
     }
     let t = TILE as f32;
+    let (gx, gy) = (0.5 + 1e-3 * (x1 - x0), 0.5 + 1e-3 * (y1 - y0));
+    out.pixels = [
+        (x0 - gx - 0.5).ceil().max(0.0) as u32,
+        (y0 - gy - 0.5).ceil().max(0.0) as u32,
+        (x1 + gx - 0.5).floor().min(w - 1.0) as u32,
+        (y1 + gy - 0.5).floor().min(h - 1.0) as u32,
+    ];
     out.rect = [(px0 / t) as u32, (py0 / t) as u32, (px1 / t) as u32, (py1 / t) as u32];
     out.radius = (0.5 * (x1 - x0)).max(0.5 * (y1 - y0)).min(1e9).max(0.5);
     out.tu = tu;
@@ -186,7 +202,20 @@ pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) ->
         p.rect.push(o.rect);
         p.depth.push(o.depth);
         p.radius.push(o.radius);
+        p.pixels.push(o.pixels);
         p.rho_max.push(o.rho_max);
+        let mut r = [0.0f32; 16];
+        r[0..3].copy_from_slice(&o.tu);
+        r[3..6].copy_from_slice(&o.tv);
+        r[6..9].copy_from_slice(&o.tw);
+        r[9..11].copy_from_slice(&o.mean2d);
+        r[11] = o.opacity;
+        r[12] = o.rho_max;
+        // The pixel box as two u16 pairs (bit patterns, never used as numbers).
+        let [x0, y0, x1, y1] = o.pixels.map(|v| v.min(u16::MAX as u32));
+        r[13] = f32::from_bits(x0 | (x1 << 16));
+        r[14] = f32::from_bits(y0 | (y1 << 16));
+        p.packed.push(r);
     }
     p
 }

@@ -395,8 +395,8 @@ fn gradients_dense_pixels_many_groups_and_channels() {
     let mut td = TileData::default();
     let mut most = 0;
     for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
-        td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize]);
         let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
+        td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], (tx * TILE, ty * TILE));
         for y in ty * TILE..((ty + 1) * TILE).min(cam.height) {
             for x in tx * TILE..((tx + 1) * TILE).min(cam.width) {
                 let mut n = 0;
@@ -597,6 +597,51 @@ fn surface_depth_matches_reference() {
     assert!(pulled > 100, "the pull toward the median must change the depth somewhere ({pulled} pixels)");
 }
 
+/// α of surfel i at pixel (x, y) by a world-space ray–plane evaluation in f64 (independent of
+/// the rasteriser's homogeneous algebra): the reference for what culling may drop.
+fn alpha_f64(scene: &Surfels, camera: &Camera, filter: f32, i: usize, x: u32, y: u32) -> f64 {
+    let rot: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| camera.rotation.col(c)[r] as f64));
+    let tr = [camera.translation.x as f64, camera.translation.y as f64, camera.translation.z as f64];
+    let org: [f64; 3] = std::array::from_fn(|a| -(0..3).map(|r| rot[r][a] * tr[r]).sum::<f64>());
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let r = crate::surfels::rotation_from_quat(scene.quats[i]);
+    let (tu, tv, n) = (r[0].map(|v| v as f64), r[1].map(|v| v as f64), r[2].map(|v| v as f64));
+    let mu = scene.means[i].map(|v| v as f64);
+    let (su, sv) = (scene.log_scales[i][0].exp() as f64, scene.log_scales[i][1].exp() as f64);
+    let o = 1.0 / (1.0 + (-scene.opacity_logits[i] as f64).exp());
+    let c: [f64; 3] = std::array::from_fn(|k| dot(rot[k], mu) + tr[k]);
+    let m2d = [camera.fx as f64 * c[0] / c[2] + camera.cx as f64, camera.fy as f64 * c[1] / c[2] + camera.cy as f64];
+    let (pxf, pyf) = (x as f64 + 0.5, y as f64 + 0.5);
+    let dc = [(pxf - camera.cx as f64) / camera.fx as f64, (pyf - camera.cy as f64) / camera.fy as f64, 1.0];
+    let d: [f64; 3] = std::array::from_fn(|a| (0..3).map(|k| rot[k][a] * dc[k]).sum());
+    let den = dot(n, d);
+    let rho3 = if den == 0.0 {
+        f64::INFINITY
+    } else {
+        let t = dot(n, [mu[0] - org[0], mu[1] - org[1], mu[2] - org[2]]) / den;
+        let p = [org[0] + t * d[0] - mu[0], org[1] + t * d[1] - mu[1], org[2] + t * d[2] - mu[2]];
+        (dot(tu, p) / su).powi(2) + (dot(tv, p) / sv).powi(2)
+    };
+    let rho2 = filter as f64 * ((m2d[0] - pxf).powi(2) + (m2d[1] - pyf).powi(2));
+    o * (-0.5 * rho3.min(rho2)).exp()
+}
+
+/// Scenes for the culling tests: large tilted surfels (many pruned corners), tiny scales, a
+/// sharper filter, and a few surfels seen nearly edge-on.
+fn culling_scenes() -> Vec<(u64, Surfels, f32)> {
+    [(11u64, (0.02f32, 0.4f32), 2.0f32), (12, (0.001, 0.01), 2.0), (13, (0.1, 0.6), 2.0), (14, (0.001, 0.01), 8.0)]
+        .into_iter()
+        .map(|(seed, scale, filter)| {
+            let mut scene = random_scene(400, seed, scale, (0.05, 0.99));
+            for i in 0..20 {
+                let n = Vec3::new(1.0, 0.002 * i as f32, 0.0).normalize();
+                scene.quats[i] = quat_with_normal(n.to_array());
+            }
+            (seed, scene, filter)
+        })
+        .collect()
+}
+
 /// Tile culling by the exact footprint (tiles.rs `Footprint`) drops only (tile, surfel) pairs
 /// whose α is below α_min at every pixel centre of the tile: checked pair by pair against a
 /// world-space ray–plane evaluation in f64 (not the conic algebra of the cull), on scenes with
@@ -605,22 +650,9 @@ fn surface_depth_matches_reference() {
 #[test]
 fn tile_culling_drops_only_pairs_without_hits() {
     let camera = camera(96, 80);
-    let rot: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| camera.rotation.col(c)[r] as f64));
-    let tr = [camera.translation.x as f64, camera.translation.y as f64, camera.translation.z as f64];
-    let org: [f64; 3] = std::array::from_fn(|a| -(0..3).map(|r| rot[r][a] * tr[r]).sum::<f64>());
-    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let mut dropped_total = 0usize;
-    // The 2DGS filter and a sharper one (a smaller filter circle the cull must follow).
-    for (seed, scale, filter) in
-        [(11u64, (0.02f32, 0.4f32), 2.0f32), (12, (0.001, 0.01), 2.0), (13, (0.1, 0.6), 2.0), (14, (0.001, 0.01), 8.0)]
-    {
+    for (seed, scene, filter) in culling_scenes() {
         let settings = RasterSettings { two_sided: true, filter_inv_square: filter, ..RasterSettings::default() };
-        let mut scene = random_scene(400, seed, scale, (0.05, 0.99));
-        // A few surfels seen nearly edge-on.
-        for i in 0..20 {
-            let n = Vec3::new(1.0, 0.002 * i as f32, 0.0).normalize();
-            scene.quats[i] = quat_with_normal(n.to_array());
-        }
         let proj = super::project::project(&scene, &camera, &settings);
         let culled = super::tiles::bin(&proj, camera.width, camera.height, settings.alpha_min, filter);
         let full = super::tiles::bin(&proj, camera.width, camera.height, 0.0, filter);
@@ -635,35 +667,9 @@ fn tile_culling_drops_only_pairs_without_hits() {
                 }
                 dropped_total += 1;
                 let i = i as usize;
-                let r = crate::surfels::rotation_from_quat(scene.quats[i]);
-                let (tu, tv, n) = (r[0].map(|v| v as f64), r[1].map(|v| v as f64), r[2].map(|v| v as f64));
-                let mu = scene.means[i].map(|v| v as f64);
-                let (su, sv) = (scene.log_scales[i][0].exp() as f64, scene.log_scales[i][1].exp() as f64);
-                let o = 1.0 / (1.0 + (-scene.opacity_logits[i] as f64).exp());
-                let c: [f64; 3] = std::array::from_fn(|k| dot(rot[k], mu) + tr[k]);
-                let m2d = [
-                    camera.fx as f64 * c[0] / c[2] + camera.cx as f64,
-                    camera.fy as f64 * c[1] / c[2] + camera.cy as f64,
-                ];
                 for y in ty * TILE..((ty + 1) * TILE).min(camera.height) {
                     for x in tx * TILE..((tx + 1) * TILE).min(camera.width) {
-                        let (pxf, pyf) = (x as f64 + 0.5, y as f64 + 0.5);
-                        let dc = [
-                            (pxf - camera.cx as f64) / camera.fx as f64,
-                            (pyf - camera.cy as f64) / camera.fy as f64,
-                            1.0,
-                        ];
-                        let d: [f64; 3] = std::array::from_fn(|a| (0..3).map(|k| rot[k][a] * dc[k]).sum());
-                        let den = dot(n, d);
-                        let rho3 = if den == 0.0 {
-                            f64::INFINITY
-                        } else {
-                            let t = dot(n, [mu[0] - org[0], mu[1] - org[1], mu[2] - org[2]]) / den;
-                            let p = [org[0] + t * d[0] - mu[0], org[1] + t * d[1] - mu[1], org[2] + t * d[2] - mu[2]];
-                            (dot(tu, p) / su).powi(2) + (dot(tv, p) / sv).powi(2)
-                        };
-                        let rho2 = filter as f64 * ((m2d[0] - pxf).powi(2) + (m2d[1] - pyf).powi(2));
-                        let alpha = o * (-0.5 * rho3.min(rho2)).exp();
+                        let alpha = alpha_f64(&scene, &camera, filter, i, x, y);
                         assert!(
                             alpha < settings.alpha_min as f64 * 0.999,
                             "seed {seed}: surfel {i} dropped from tile ({tx}, {ty}) but α = {alpha} at pixel ({x}, {y})"
@@ -693,6 +699,58 @@ fn tile_culling_drops_only_pairs_without_hits() {
         assert!(hit.iter().all(|&h| h), "seed {seed}: a pair no surfel's generation range reaches");
     }
     assert!(dropped_total > 1000, "the cull dropped only {dropped_total} pairs");
+}
+
+/// A pixel evaluates only its tile quarter's candidates (`TileData::quarters`): every candidate
+/// left out of a quarter has α < α_min at every pixel centre of it (by the f64 world-space
+/// evaluation), the quarters keep the tile's order, and on small surfels they drop most of the
+/// list (else the split would be pointless).
+#[test]
+fn tile_quarters_leave_out_only_candidates_without_hits() {
+    use super::forward::{QUARTER, TileData};
+    let camera = camera(96, 80);
+    for (seed, scene, filter) in culling_scenes() {
+        let (mut left_out, mut listed) = (0usize, 0usize);
+        let settings = RasterSettings { two_sided: true, filter_inv_square: filter, ..RasterSettings::default() };
+        let proj = super::project::project(&scene, &camera, &settings);
+        let bins = super::tiles::bin(&proj, camera.width, camera.height, settings.alpha_min, filter);
+        let mut td = TileData::default();
+        for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
+            let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
+            let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
+            td.load(&proj, ids, (tx * TILE, ty * TILE));
+            for (q, quarter) in td.quarters.iter().enumerate() {
+                assert_eq!(quarter.n, quarter.slot.len());
+                assert!(quarter.slot.windows(2).all(|w| w[0] < w[1]), "seed {seed}: quarter {q} out of tile order");
+                let x0 = tx * TILE + QUARTER * (q as u32 % 2);
+                let y0 = ty * TILE + QUARTER * (q as u32 / 2);
+                for (j, &i) in ids.iter().enumerate() {
+                    if quarter.slot.binary_search(&(j as u32)).is_ok() {
+                        listed += 1;
+                        continue;
+                    }
+                    left_out += 1;
+                    for y in y0..(y0 + QUARTER).min(camera.height) {
+                        for x in x0..(x0 + QUARTER).min(camera.width) {
+                            let alpha = alpha_f64(&scene, &camera, filter, i as usize, x, y);
+                            assert!(
+                                alpha < settings.alpha_min as f64 * 0.999,
+                                "seed {seed}: surfel {i} left out of quarter {q} of tile ({tx}, {ty}) but α = {alpha} at ({x}, {y})"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+        // Seeds 12 and 14 have tiny surfels (a few pixels): most of a tile's list misses a
+        // given quarter.
+        let tiny = seed == 12 || seed == 14;
+        assert!(
+            left_out > 0 && (!tiny || left_out > listed),
+            "seed {seed}: the quarters left out only {left_out} of {} entries",
+            left_out + listed
+        );
+    }
 }
 
 /// The recorded forward (`render_recorded`) gives `render`'s outputs, and the backward that

@@ -179,43 +179,64 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
     out
 }
 
+/// The packed candidate record (`Projected::packed`).
+fn pack(o: &One) -> [f32; 16] {
+    let mut r = [0.0f32; 16];
+    r[0..3].copy_from_slice(&o.tu);
+    r[3..6].copy_from_slice(&o.tv);
+    r[6..9].copy_from_slice(&o.tw);
+    r[9..11].copy_from_slice(&o.mean2d);
+    r[11] = o.opacity;
+    r[12] = o.rho_max;
+    // The pixel box as two u16 pairs (bit patterns, never used as numbers).
+    let [x0, y0, x1, y1] = o.pixels.map(|v| v.min(u16::MAX as u32));
+    r[13] = f32::from_bits(x0 | (x1 << 16));
+    r[14] = f32::from_bits(y0 | (y1 << 16));
+    r
+}
+
 /// Project every surfel (rayon over surfels).
 pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) -> Projected {
     let campos = camera.position();
     let colour = settings.outputs.colour;
-    let ones: Vec<One> =
-        (0..surfels.len()).into_par_iter().map(|i| project_one(surfels, i, camera, campos, settings, colour)).collect();
-    let mut p = Projected::default();
-    let n = ones.len();
-    p.tu.reserve(n);
-    for o in &ones {
-        p.tu.push(o.tu);
-        p.tv.push(o.tv);
-        p.tw.push(o.tw);
-        p.mean2d.push(o.mean2d);
-        p.opacity.push(o.opacity);
-        if colour {
-            p.colour.push(o.colour);
-        }
-        p.normal.push(o.normal);
-        p.sign.push(o.sign);
-        p.rect.push(o.rect);
-        p.depth.push(o.depth);
-        p.radius.push(o.radius);
-        p.pixels.push(o.pixels);
-        p.rho_max.push(o.rho_max);
-        let mut r = [0.0f32; 16];
-        r[0..3].copy_from_slice(&o.tu);
-        r[3..6].copy_from_slice(&o.tv);
-        r[6..9].copy_from_slice(&o.tw);
-        r[9..11].copy_from_slice(&o.mean2d);
-        r[11] = o.opacity;
-        r[12] = o.rho_max;
-        // The pixel box as two u16 pairs (bit patterns, never used as numbers).
-        let [x0, y0, x1, y1] = o.pixels.map(|v| v.min(u16::MAX as u32));
-        r[13] = f32::from_bits(x0 | (x1 << 16));
-        r[14] = f32::from_bits(y0 | (y1 << 16));
-        p.packed.push(r);
+    let n = surfels.len();
+    let mut p = Projected {
+        tu: vec![[0.0; 3]; n],
+        tv: vec![[0.0; 3]; n],
+        tw: vec![[0.0; 3]; n],
+        mean2d: vec![[0.0; 2]; n],
+        opacity: vec![0.0; n],
+        colour: vec![[0.0; 3]; if colour { n } else { 0 }],
+        normal: vec![[0.0; 3]; n],
+        sign: vec![0.0; n],
+        rect: vec![CULLED; n],
+        depth: vec![0.0; n],
+        radius: vec![0.0; n],
+        pixels: vec![CULLED; n],
+        rho_max: vec![0.0; n],
+        packed: vec![[0.0; 16]; n],
+    };
+    // Each surfel's fields written in place, in parallel (no per-surfel intermediate).
+    let geometry = (p.tu.par_iter_mut(), p.tv.par_iter_mut(), p.tw.par_iter_mut(), p.mean2d.par_iter_mut());
+    let scalars = (p.opacity.par_iter_mut(), p.sign.par_iter_mut(), p.depth.par_iter_mut(), p.radius.par_iter_mut());
+    let rest = (p.normal.par_iter_mut(), p.rect.par_iter_mut(), p.pixels.par_iter_mut(), p.rho_max.par_iter_mut());
+    geometry.into_par_iter().zip(scalars.into_par_iter()).zip(rest.into_par_iter()).zip(p.packed.par_iter_mut()).enumerate().for_each(
+        |(i, ((((tu, tv, tw, mean2d), (opacity, sign, depth, radius)), (normal, rect, pixels, rho_max)), packed))| {
+            let o = project_one(surfels, i, camera, campos, settings, false);
+            (*tu, *tv, *tw, *mean2d) = (o.tu, o.tv, o.tw, o.mean2d);
+            (*opacity, *sign, *depth, *radius) = (o.opacity, o.sign, o.depth, o.radius);
+            (*normal, *rect, *pixels, *rho_max) = (o.normal, o.rect, o.pixels, o.rho_max);
+            *packed = pack(&o);
+        },
+    );
+    if colour {
+        // SH colour only for surfels that are drawn (radius > 0), as project_one does.
+        p.colour.par_iter_mut().enumerate().for_each(|(i, c)| {
+            if p.radius[i] > 0.0 {
+                let dir = Vec3::from(surfels.means[i]) - campos;
+                *c = sh::eval(&surfels.sh[i], surfels.sh_degree, dir.to_array());
+            }
+        });
     }
     p
 }

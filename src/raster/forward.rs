@@ -877,7 +877,17 @@ fn render_impl(
     drop(buf);
     let radii = proj.radius.clone();
     let visible = radii.iter().map(|&r| r > 0.0).collect();
-    let state = ForwardState { width: w, height: h, proj, tiles: bins, radii, visible, evaluations, evaluations_performed, record };
+    let state = ForwardState {
+        width: w,
+        height: h,
+        proj,
+        tiles: bins,
+        radii,
+        visible,
+        evaluations,
+        evaluations_performed,
+        record,
+    };
     (out, state)
 }
 
@@ -1093,7 +1103,11 @@ pub fn sorting_error(state: &ForwardState, camera: &Camera, settings: &RasterSet
             || (TileData::default(), Vec::<(f32, f32)>::new()),
             |(td, list), t| {
                 let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
-                td.load(&state.proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], (tx * TILE, ty * TILE));
+                td.load(
+                    &state.proj,
+                    &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize],
+                    (tx * TILE, ty * TILE),
+                );
                 let mut acc = [0.0f64; 4];
                 for y in (ty * TILE..((ty + 1) * TILE).min(camera.height)).filter(|y| y % step == 0) {
                     for x in (tx * TILE..((tx + 1) * TILE).min(camera.width)).filter(|x| x % step == 0) {

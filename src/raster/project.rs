@@ -220,15 +220,24 @@ pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) ->
     let geometry = (p.tu.par_iter_mut(), p.tv.par_iter_mut(), p.tw.par_iter_mut(), p.mean2d.par_iter_mut());
     let scalars = (p.opacity.par_iter_mut(), p.sign.par_iter_mut(), p.depth.par_iter_mut(), p.radius.par_iter_mut());
     let rest = (p.normal.par_iter_mut(), p.rect.par_iter_mut(), p.pixels.par_iter_mut(), p.rho_max.par_iter_mut());
-    geometry.into_par_iter().zip(scalars.into_par_iter()).zip(rest.into_par_iter()).zip(p.packed.par_iter_mut()).enumerate().for_each(
-        |(i, ((((tu, tv, tw, mean2d), (opacity, sign, depth, radius)), (normal, rect, pixels, rho_max)), packed))| {
-            let o = project_one(surfels, i, camera, campos, settings, false);
-            (*tu, *tv, *tw, *mean2d) = (o.tu, o.tv, o.tw, o.mean2d);
-            (*opacity, *sign, *depth, *radius) = (o.opacity, o.sign, o.depth, o.radius);
-            (*normal, *rect, *pixels, *rho_max) = (o.normal, o.rect, o.pixels, o.rho_max);
-            *packed = pack(&o);
-        },
-    );
+    geometry
+        .into_par_iter()
+        .zip(scalars.into_par_iter())
+        .zip(rest.into_par_iter())
+        .zip(p.packed.par_iter_mut())
+        .enumerate()
+        .for_each(
+            |(
+                i,
+                ((((tu, tv, tw, mean2d), (opacity, sign, depth, radius)), (normal, rect, pixels, rho_max)), packed),
+            )| {
+                let o = project_one(surfels, i, camera, campos, settings, false);
+                (*tu, *tv, *tw, *mean2d) = (o.tu, o.tv, o.tw, o.mean2d);
+                (*opacity, *sign, *depth, *radius) = (o.opacity, o.sign, o.depth, o.radius);
+                (*normal, *rect, *pixels, *rho_max) = (o.normal, o.rect, o.pixels, o.rho_max);
+                *packed = pack(&o);
+            },
+        );
     if colour {
         // SH colour only for surfels that are drawn (radius > 0), as project_one does.
         p.colour.par_iter_mut().enumerate().for_each(|(i, c)| {

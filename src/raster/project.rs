@@ -45,7 +45,7 @@ pub struct Projected {
     pub radius: Vec<f32>,
     /// Pixels [x0, y0, x1, y1] (inclusive) whose centre lies in the α ≥ α_min bounding box
     /// grown by half a pixel (and 10⁻³ of its size) against rounding; [1, 1, 0, 0] when culled.
-    /// The compositor skips a group of candidates whose boxes all miss the pixel.
+    /// A tile quarter lists only the candidates whose box reaches it (`forward::TileData`).
     pub pixels: Vec<[u32; 4]>,
     /// Conservative ρ cut-off: 2 ln(o/α_min) plus a margin for rounding (∞ when α_min ≤ 0).
     /// ρ above it cannot give α ≥ α_min (see `forward::Candidates`).
@@ -61,7 +61,6 @@ struct One {
     tw: [f32; 3],
     mean2d: [f32; 2],
     opacity: f32,
-    colour: [f32; 3],
     normal: [f32; 3],
     sign: f32,
     rect: [u32; 4],
@@ -73,14 +72,13 @@ struct One {
 
 const CULLED: [u32; 4] = [1, 1, 0, 0];
 
-fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &RasterSettings, colour: bool) -> One {
+fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &RasterSettings) -> One {
     let mut out = One {
         tu: [0.0; 3],
         tv: [0.0; 3],
         tw: [0.0; 3],
         mean2d: [0.0; 2],
         opacity: 0.0,
-        colour: [0.0; 3],
         normal: [0.0; 3],
         sign: 1.0,
         rect: CULLED,
@@ -173,9 +171,6 @@ fn project_one(s: &Surfels, i: usize, cam: &Camera, campos: Vec3, settings: &Ras
     out.depth = c.z;
     // Computed once per surfel here, not per tile candidate (the ln showed in profiles).
     out.rho_max = if settings.alpha_min > 0.0 { r2 + r2.abs() * 1e-3 + 1e-3 } else { f32::INFINITY };
-    if colour {
-        out.colour = sh::eval(&s.sh[i], s.sh_degree, dir.to_array());
-    }
     out
 }
 
@@ -231,7 +226,7 @@ pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) ->
                 i,
                 ((((tu, tv, tw, mean2d), (opacity, sign, depth, radius)), (normal, rect, pixels, rho_max)), packed),
             )| {
-                let o = project_one(surfels, i, camera, campos, settings, false);
+                let o = project_one(surfels, i, camera, campos, settings);
                 (*tu, *tv, *tw, *mean2d) = (o.tu, o.tv, o.tw, o.mean2d);
                 (*opacity, *sign, *depth, *radius) = (o.opacity, o.sign, o.depth, o.radius);
                 (*normal, *rect, *pixels, *rho_max) = (o.normal, o.rect, o.pixels, o.rho_max);
@@ -239,7 +234,7 @@ pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) ->
             },
         );
     if colour {
-        // SH colour only for surfels that are drawn (radius > 0), as project_one does.
+        // SH colour (at the direction camera → centre) only for surfels that are drawn.
         p.colour.par_iter_mut().enumerate().for_each(|(i, c)| {
             if p.radius[i] > 0.0 {
                 let dir = Vec3::from(surfels.means[i]) - campos;

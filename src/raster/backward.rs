@@ -20,7 +20,7 @@
 //! projection backward.
 
 use super::forward::{
-    PK_MEAN, PK_OP, PK_TU, PK_TV, PK_TW, TileData, composite_two_pixels, load16, splat_alpha, splat_eval,
+    PK_MEAN, PK_OP, PK_TU, PK_TV, PK_TW, TileData, composite_two_pixels, load16, splat_alpha, splat_cross, splat_finish,
 };
 use super::lanes;
 use super::project::{ProjGrad, SurfelGradSlots, project_backward_one};
@@ -359,7 +359,7 @@ fn backward_tile_row(
 /// w_j = α_j T_j and every output O = Σ_j w_j q_j + T_n b: ∂O/∂α_j = T_j q_j − S_j/(1 − α_j),
 /// S_j = Σ_{k>j} w_k q_k + T_n b (a suffix sum: within a group across lanes, between groups
 /// a running total). The hit's (u, v), G and branch are recomputed from its candidate with the
-/// forward's own lane arithmetic (`splat_eval`), so they are the forward's values bit for bit.
+/// forward's own lane arithmetic (`splat_cross`, `splat_finish`), so they are the forward's values bit for bit.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn pixel_backward(
@@ -479,7 +479,7 @@ fn pixel_backward(
         let tw = [gat(PK_TW), gat(PK_TW + 1), gat(PK_TW + 2)];
         let mean2d = [gat(PK_MEAN), gat(PK_MEAN + 1)];
         let op = gat(PK_OP);
-        let e = splat_eval(pxf, pyf, tu, tv, tw, mean2d, s.filter_inv_square);
+        let e = splat_finish(splat_cross(pxf, pyf, tu, tv, tw, mean2d, s.filter_inv_square), tw);
         let (g, _, clamped) = splat_alpha(e.rho, op);
         cols[ROW_OPACITY] = clamped.select(zero, g * v_alpha);
         let v_rho = clamped.select(zero, splat(-0.5) * g * op * v_alpha);

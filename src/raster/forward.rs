@@ -199,8 +199,8 @@ pub(crate) fn load16(v: &[f32], j: usize) -> f32x16 {
 
 /// One pixel centre against 16 candidates (lane-wise): the ray–splat terms k, l, h.z, the
 /// hit's (u, v), ρ and z, and which branch (ray–plane or screen-space filter) decided.
-/// `eval16` (from the tile arrays) and the backward (from gathered candidates) both call it,
-/// so their decisions and values agree bit for bit.
+/// `eval16` (from the tile arrays) and the backward (from gathered candidates) both compute it
+/// with `splat_finish(splat_cross(…))`, so their decisions and values agree bit for bit.
 pub(crate) struct SplatEval {
     pub k: [f32x16; 3],
     pub l: [f32x16; 3],
@@ -213,20 +213,9 @@ pub(crate) struct SplatEval {
     pub is3d: f32x16,
 }
 
-#[inline(always)]
-pub(crate) fn splat_eval(
-    px: f32,
-    py: f32,
-    tu: [f32x16; 3],
-    tv: [f32x16; 3],
-    tw: [f32x16; 3],
-    mean2d: [f32x16; 2],
-    filter_inv_square: f32,
-) -> SplatEval {
-    splat_finish(splat_cross(px, py, tu, tv, tw, mean2d, filter_inv_square), tw)
-}
-
-/// The division-free first half of [`splat_eval`]: k, l, h = k × l and the filter's ρ₂.
+/// The division-free first half of a splat evaluation ([`splat_finish`] completes it): k, l,
+/// h = k × l and the filter's ρ₂. Kept apart: the tile loop compiled to measurably slower code
+/// when the group test below the divide was its only exit (BENCHMARKS.md, session 21).
 pub(crate) struct SplatCross {
     k: [f32x16; 3],
     l: [f32x16; 3],
@@ -235,7 +224,7 @@ pub(crate) struct SplatCross {
 }
 
 #[inline(always)]
-fn splat_cross(
+pub(crate) fn splat_cross(
     px: f32,
     py: f32,
     tu: [f32x16; 3],
@@ -268,8 +257,10 @@ impl SplatCross {
     }
 }
 
+/// The second half: (u, v), ρ, the branch and z. `eval16` and the backward both run
+/// `splat_finish(splat_cross(…))`, so their decisions and values agree bit for bit.
 #[inline(always)]
-fn splat_finish(c: SplatCross, tw: [f32x16; 3]) -> SplatEval {
+pub(crate) fn splat_finish(c: SplatCross, tw: [f32x16; 3]) -> SplatEval {
     let SplatCross { k, l, h: [hx, hy, hz], rho2 } = c;
     let inv = f32x16::ONE / hz;
     let u = hx * inv;
@@ -291,7 +282,7 @@ pub(crate) fn splat_alpha(rho: f32x16, opacity: f32x16) -> (f32x16, f32x16, f32x
 }
 
 /// Evaluate candidates j0..j0 + 16 of the tile at pixel centre (px, py) (SIMD over
-/// candidates; forward and backward make identical decisions through `splat_eval`).
+/// candidates; forward and backward make identical decisions through `splat_cross` / `splat_finish`).
 /// Returns the hit mask; `out` is only written when the mask is non-zero.
 #[inline(always)]
 pub(crate) fn eval16(td: &Candidates, j0: usize, px: f32, py: f32, s: &RasterSettings, out: &mut Lanes) -> u32 {

@@ -675,7 +675,7 @@ type WideStack = [MaybeUninit<u64>; WIDE_STACK];
 ///
 /// With AVX-512 two or more children are ordered by a branch-free bitonic network: on trained
 /// scenes, where nodes have several hit children, the insertion loop's branches mispredicted
-/// (forward 8–10 % faster; BENCHMARKS.md, session 22).
+/// (forward 7–13 % faster on the bench and trained scenes; BENCHMARKS.md, session 22).
 #[inline(always)]
 fn push_children(stack: &mut WideStack, sp: usize, t_near: f32x8, child: &[u32; W], mask: u32) -> (usize, u64) {
     if mask & mask.wrapping_sub(1) == 0 {

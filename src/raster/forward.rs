@@ -945,24 +945,22 @@ fn split_outputs(buf: &[f32], w: u32, h: u32, stride: usize, nch: usize, s: &Ras
     rows.into_par_iter().for_each(|mut row| {
         for (x, r) in row.rec.chunks_exact(stride).enumerate() {
             row.alpha[x] = r[REC_ALPHA];
-            if let Some(c) = row.colour.as_deref_mut() {
-                c[x] = [r[REC_COLOUR], r[REC_COLOUR + 1], r[REC_COLOUR + 2]];
-            }
-            if let Some(d) = row.depth.as_deref_mut() {
-                d[x] = r[REC_DEPTH];
-            }
-            if let Some(d) = row.median.as_deref_mut() {
-                d[x] = r[REC_MEDIAN];
-            }
-            if let Some(n) = row.normal.as_deref_mut() {
-                n[x] = [r[REC_NORMAL], r[REC_NORMAL + 1], r[REC_NORMAL + 2]];
-            }
-            if let Some(d) = row.distortion.as_deref_mut() {
-                d[x] = r[REC_DIST];
-            }
-            if let Some(d) = row.surface.as_deref_mut() {
-                d[x] = r[REC_SURFACE];
-            }
+            let scalar = |out: &mut Option<&mut [f32]>, at: usize| {
+                if let Some(o) = out.as_deref_mut() {
+                    o[x] = r[at];
+                }
+            };
+            let vec3 = |out: &mut Option<&mut [[f32; 3]]>, at: usize| {
+                if let Some(o) = out.as_deref_mut() {
+                    o[x] = [r[at], r[at + 1], r[at + 2]];
+                }
+            };
+            vec3(&mut row.colour, REC_COLOUR);
+            vec3(&mut row.normal, REC_NORMAL);
+            scalar(&mut row.depth, REC_DEPTH);
+            scalar(&mut row.median, REC_MEDIAN);
+            scalar(&mut row.distortion, REC_DIST);
+            scalar(&mut row.surface, REC_SURFACE);
             if nch > 0 {
                 row.features[x * nch..(x + 1) * nch].copy_from_slice(&r[REC_FEAT..REC_FEAT + nch]);
             }

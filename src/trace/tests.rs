@@ -770,6 +770,50 @@ fn backward_is_deterministic_across_thread_counts() {
 }
 
 #[test]
+fn coherent_order_keeps_each_origins_rays_together_in_the_callers_order() {
+    // 40 origins × 8 directions, the origins' batches interleaved in pairs and then some rays
+    // with origins of their own: each origin's rays must come out as one contiguous run in
+    // the caller's order, runs ordered by the Morton code of their origin.
+    let mut rng = Pcg64::seed_from_u64(63);
+    let origins: Vec<[f32; 3]> = (0..40).map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0f32))).collect();
+    let mut rays = Vec::new();
+    for (o, &origin) in origins.iter().enumerate() {
+        for j in 0..8 {
+            rays.push(Ray { origin, dir: [j as f32, 1.0, o as f32], ..Default::default() });
+        }
+    }
+    for _ in 0..30 {
+        rays.push(Ray {
+            origin: std::array::from_fn(|_| rng.random_range(-1.0..1.0f32)),
+            dir: [0.0, 0.0, 1.0],
+            ..Default::default()
+        });
+    }
+    let order = super::forward::coherent_order(&rays);
+    let mut seen = order.clone();
+    seen.sort_unstable();
+    assert!(seen.iter().enumerate().all(|(j, &k)| j == k as usize), "not a permutation");
+    // Runs of equal origin in the output, each increasing in the caller's index.
+    let origin_of = |j: usize| rays[order[j] as usize].origin;
+    let mut runs = 0;
+    let mut j = 0;
+    while j < order.len() {
+        let mut e = j + 1;
+        while e < order.len() && origin_of(e) == origin_of(j) {
+            assert!(order[e] == order[e - 1] + 1, "a run is not in the caller's order");
+            e += 1;
+        }
+        let count = rays.iter().filter(|r| r.origin == origin_of(j)).count();
+        assert_eq!(e - j, count, "an origin's rays are split into several runs");
+        runs += 1;
+        j = e;
+    }
+    assert_eq!(runs, 70);
+    assert!(order.windows(2).any(|w| w[1] < w[0]), "the runs were not reordered");
+    assert_eq!(order, super::forward::coherent_order(&rays), "not deterministic");
+}
+
+#[test]
 fn coherent_order_leaves_results_in_the_callers_places() {
     // Batches of ≥ 64 rays are traced in a sorted order; each ray's outputs, feature channels
     // and ray gradients must land at its own index: compare with tracing each ray alone.

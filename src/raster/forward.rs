@@ -22,7 +22,7 @@
 //! in tile order, so the hits and their order are the tile list's), 16 candidates at a time
 //! (f32x16, one structure of arrays per group, transposed from per-surfel packed records). A
 //! division-free test of ρ against the cut-off skips groups that cannot hit before the divide.
-//! The window is per hit: for K ≤ 16 three AVX-512 registers (branchless insert and pop),
+//! The window is per hit: scalars for K = 1, for K ≤ 16 three AVX-512 registers (branchless insert and pop),
 //! otherwise a ring buffer. The blend is scalar, inlined into the window loop: that loop waits
 //! on the window's compare → permute chain, and the blend's arithmetic fills those cycles (a
 //! separate 16-hit SIMD blend pass measured no faster). Nothing per pixel is saved: the
@@ -397,6 +397,49 @@ impl Window for RingWindow {
     }
 }
 
+/// K = 1 (the plain 2DGS order): one entry in scalars. A hit then blends the previous one and
+/// takes its place, with none of the register window's compare → permute chain.
+pub(crate) struct SingleWindow {
+    z: f32,
+    slot: u32,
+    alpha: f32,
+    full: bool,
+}
+
+impl SingleWindow {
+    fn new() -> Self {
+        SingleWindow { z: 0.0, slot: 0, alpha: 0.0, full: false }
+    }
+}
+
+impl Window for SingleWindow {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        self.full as usize
+    }
+    #[inline(always)]
+    fn front_slot(&self) -> usize {
+        self.slot as usize
+    }
+    #[inline(always)]
+    fn front_z(&self) -> f32 {
+        self.z
+    }
+    #[inline(always)]
+    fn front_alpha(&self) -> f32 {
+        self.alpha
+    }
+    #[inline(always)]
+    fn pop_front(&mut self) {
+        self.full = false;
+    }
+    #[inline(always)]
+    fn insert(&mut self, z: f32, slot: u32, alpha: f32) {
+        debug_assert!(!self.full, "SingleWindow holds one entry");
+        (self.z, self.slot, self.alpha, self.full) = (z, slot, alpha, true);
+    }
+}
+
 /// Up to 16 entries held in three AVX-512 registers (lanes at or above len hold z = +∞): the
 /// insertion point is one compare and a few mask-register operations, the shift one masked
 /// lane permute and one masked move per register, so an unpredictable insertion depth costs
@@ -514,7 +557,10 @@ pub(crate) fn composite_two_pixels(
     blend0: impl FnMut(usize, f32, f32, f32),
     blend1: impl FnMut(usize, f32, f32, f32),
 ) -> [(f32, Evaluated); 2] {
-    // Registers for K ≤ 16 with AVX-512, else the ring buffer.
+    // Scalars for K = 1, registers for K ≤ 16 with AVX-512, else the ring buffer.
+    if k == 1 {
+        return composite_with([SingleWindow::new(), SingleWindow::new()], td, p, two, s, k, blend0, blend1);
+    }
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     if k <= 16 {
         return composite_with([RegWindow::new(), RegWindow::new()], td, p, two, s, k, blend0, blend1);
@@ -1133,6 +1179,29 @@ mod window_tests {
     /// The register window keeps exactly the ring window's order: random inserts (with ties)
     /// and pops, compared entry by entry after every operation.
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    #[test]
+    fn single_window_matches_ring_window_at_k_1() {
+        // The K = 1 path's window against the ring buffer under the forward's use: insert into
+        // an empty window, pop before the next insert.
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
+        let (mut ring, mut one) = (RingWindow::new(), SingleWindow::new());
+        for slot in 0..2000u32 {
+            if ring.len() == 1 && rng.random::<f32>() < 0.8 {
+                assert_eq!(
+                    (ring.front_slot(), ring.front_z(), ring.front_alpha()),
+                    (one.front_slot(), one.front_z(), one.front_alpha())
+                );
+                ring.pop_front();
+                one.pop_front();
+            } else if ring.len() == 0 {
+                let (z, alpha) = (rng.random::<f32>() - 0.2, rng.random::<f32>());
+                ring.insert(z, slot * 977, alpha);
+                one.insert(z, slot * 977, alpha);
+            }
+            assert_eq!(ring.len(), one.len());
+        }
+    }
+
     #[test]
     fn register_window_matches_ring_window() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);

@@ -25,7 +25,7 @@ use std::time::Instant;
 /// Render a built-in scene into a dataset folder (TensoIR + Blender layouts, all GT passes).
 #[derive(clap::Args, Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct SynthArgs {
-    /// Scene name: spheres, box or torus.
+    /// Scene name: spheres, box, torus or cornell.
     #[arg(long, default_value = "spheres")]
     pub scene: String,
     /// Output dataset folder.
@@ -65,6 +65,42 @@ pub struct SynthArgs {
     /// Resolution (width) of the procedural env maps; height is half.
     #[arg(long, default_value_t = 512)]
     pub env_width: usize,
+    /// Render the test views from these cameras instead of the scene's band: a Blender
+    /// `transforms_*.json`, or a dataset folder (its test views). Images are `--res` square;
+    /// the cameras are scaled to it (they must be square too). `--test-views` is then ignored.
+    #[arg(long)]
+    #[serde(default)]
+    pub test_cameras: Option<PathBuf>,
+}
+
+/// The test cameras of `--test-cameras`, scaled to `res` × `res` and named `test_XXX`.
+fn load_test_cameras(path: &std::path::Path, res: u32) -> anyhow::Result<Vec<crate::camera::Camera>> {
+    let what = || format!("--test-cameras {}", path.display());
+    let views = if path.is_dir() {
+        crate::io::dataset::Dataset::open(path).with_context(what)?.test
+    } else {
+        let root = path.parent().map(PathBuf::from).unwrap_or_default();
+        crate::io::dataset::read_transforms_sized(&root, path, None).with_context(what)?
+    };
+    anyhow::ensure!(!views.is_empty(), "{}: no test views", what());
+    views
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let cam = v.camera;
+            anyhow::ensure!(
+                cam.width == cam.height,
+                "{}: view {} is {}×{}; synth renders square images",
+                what(),
+                cam.name,
+                cam.width,
+                cam.height
+            );
+            let mut cam = cam.scaled(res, res);
+            cam.name = format!("test_{i:03}");
+            Ok(cam)
+        })
+        .collect()
 }
 
 impl SynthArgs {
@@ -84,6 +120,7 @@ impl SynthArgs {
             relight_envs: None,
             bench: false,
             env_width: 512,
+            test_cameras: None,
         }
     }
 }
@@ -173,7 +210,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
 
     let opts = RenderOptions { spp: args.spp, max_bounces: args.max_bounces, rr_start: 3 };
     let train_cams = dataset::cameras(&scene.rig, args.train_views, args.res, false, args.seed);
-    let test_cams = dataset::cameras(&scene.rig, args.test_views, args.res, true, args.seed);
+    let test_cams = match &args.test_cameras {
+        Some(path) => load_test_cameras(path, args.res)?,
+        None => dataset::cameras(&scene.rig, args.test_views, args.res, true, args.seed),
+    };
     let px = (args.res as u64).pow(2);
     let total = px * (train_cams.len() + test_cams.len() * (1 + relight.len())) as u64;
     let bar = indicatif::ProgressBar::new(total);
@@ -223,7 +263,11 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     bar.finish();
 
     let fov = scene.rig.camera_angle_x;
-    for (name, frames) in [("transforms_train.json", frames_train), ("transforms_test.json", frames_test)] {
+    // Given test cameras keep their own field of view (one per Blender file: the first's).
+    let test_fov = test_cams.first().map_or(fov, |c| c.fov_x());
+    for (name, frames, fov) in
+        [("transforms_train.json", frames_train, fov), ("transforms_test.json", frames_test, test_fov)]
+    {
         dataset::write_json(
             &out.join(name),
             &serde_json::json!({"camera_angle_x": fov, "w": args.res, "h": args.res, "env": train_env.name, "frames": frames}),
@@ -236,7 +280,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         "resolution": [args.res, args.res],
         "camera_angle_x": fov,
         "n_train": args.train_views,
-        "n_test": args.test_views,
+        "n_test": test_cams.len(),
         "seed": args.seed,
         "args": args,
         "sampling": {
@@ -249,12 +293,15 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             "clamp": "none",
             "denoiser": "none",
         },
-        "brdf": "f = a/π + F·D·G/(4 NoL NoV); GGX D with α = r²; Smith–Schlick G, k = (r+1)²/8; Schlick F, f0 = 0.04; no energy compensation; cosines clamped to [1e-6, 1]",
+        "brdf": "f = (1 − E(n·ω_o, r))·a/π + F·D·G/(4 NoL NoV), E the GGX lobe's directional albedo (split-sum LUT: the diffuse base under the specular layer, as Blender's Principled BSDF); GGX D with α = r²; Smith–Schlick G, k = (r+1)²/8; Schlick F, f0 = 0.04; cosines clamped to [1e-6, 1]",
         "color": "rgba/albedo PNGs: linear -> clip[0,1] -> sRGB OETF; straight (un-premultiplied) alpha; alpha = pixel coverage (fraction of camera samples hitting geometry); background transparent (0,0,0,0).",
         "cameras": {
             "radius": scene.rig.radius, "elev_min": scene.rig.elev_min, "elev_max": scene.rig.elev_max,
             "az_min": scene.rig.az_min, "az_max": scene.rig.az_max, "target": scene.rig.target,
-            "distribution": "train: stratified uniform-solid-angle band with golden-angle azimuth; test: seeded uniform random in the same band",
+            "distribution": match &args.test_cameras {
+                Some(p) => format!("train: stratified uniform-solid-angle band with golden-angle azimuth; test: the cameras of {}", p.display()),
+                None => "train: stratified uniform-solid-angle band with golden-angle azimuth; test: seeded uniform random in the same band".to_string(),
+            },
             "convention": "transform_matrix = camera-to-world (Blender/OpenGL camera: looks along -Z, +Y up), world +Z up",
         },
         "environment": {
@@ -306,6 +353,49 @@ mod tests {
             relight_envs: Some(vec!["studio".into()]),
             ..SynthArgs::demo(out)
         }
+    }
+
+    #[test]
+    fn test_cameras_come_from_a_dataset_folder_or_a_transforms_file() {
+        let base = std::env::temp_dir().join(format!("radiogs-synth-cams-{}", std::process::id()));
+        let src = base.join("src");
+        run(&SynthArgs { test_views: 2, ..tiny(src.clone()) }).unwrap();
+        let matrices = |dir: &std::path::Path| -> Vec<serde_json::Value> {
+            let tr: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(dir.join("transforms_test.json")).unwrap()).unwrap();
+            tr["frames"].as_array().unwrap().iter().map(|f| f["transform_matrix"].clone()).collect()
+        };
+        let want = matrices(&src);
+        for (k, given) in [src.clone(), src.join("transforms_test.json")].into_iter().enumerate() {
+            let out = base.join(format!("out{k}"));
+            // Another scene, resolution and test-view count: the cameras come from `given`.
+            let args = SynthArgs {
+                scene: "cornell".into(),
+                res: 24,
+                test_views: 5,
+                test_cameras: Some(given),
+                ..tiny(out.clone())
+            };
+            run(&args).unwrap();
+            // The same poses, up to the f32 round trip of the camera centre through the file.
+            let got = matrices(&out);
+            assert_eq!(got.len(), want.len());
+            for (g, w) in got.iter().zip(&want) {
+                for r in 0..4 {
+                    for c in 0..4 {
+                        let (a, b) = (g[r][c].as_f64().unwrap(), w[r][c].as_f64().unwrap());
+                        assert!((a - b).abs() < 1e-5, "pose entry ({r}, {c}): {a} vs {b}");
+                    }
+                }
+            }
+            let meta: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(out.join("test_001/metadata.json")).unwrap()).unwrap();
+            assert_eq!(meta["imw"], 24);
+            assert!(!out.join("test_002").exists());
+        }
+        let err = run(&SynthArgs { test_cameras: Some(base.join("missing")), ..tiny(base.join("bad")) }).unwrap_err();
+        assert!(format!("{err:#}").contains("--test-cameras"), "{err:#}");
+        std::fs::remove_dir_all(&base).unwrap();
     }
 
     #[test]

@@ -1,7 +1,9 @@
 //! Scenes of the reference path tracer: objects made of primitives, materials with spatially
 //! varying albedo/roughness (constant, 3D checker, stripes, evaluated in object-local
 //! coordinates), a BVH over all primitives, and the orbit camera rig. The built-in scenes:
-//! `spheres`, `box` (open box, indirect light dominates inside) and `torus` (non-convex mesh).
+//! `spheres`, `box` (open box, indirect light dominates inside), `torus` (non-convex mesh) and
+//! `cornell` (the geometry, materials and camera band of `../shared/data/cornell`, so our
+//! model's images of that scene can be compared with the Cycles ones).
 
 use super::brdf::Bsdf;
 use super::bvh::Bvh;
@@ -199,6 +201,38 @@ fn disc(s: &mut Scene, name: &str, material: usize, center: Vec3, radius: f32) {
     );
 }
 
+/// A box of half-extents `half` turned by `yaw` radians about the vertical axis through
+/// `center`, as 12 flat triangles wound counter-clockwise seen from outside.
+fn turned_box(s: &mut Scene, name: &str, material: usize, center: Vec3, half: Vec3, yaw: f32) {
+    let rot = Mat3::from_rotation_z(yaw);
+    let mut tris = Vec::with_capacity(12);
+    for axis in 0..3 {
+        for sign in [1.0f32, -1.0] {
+            let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+            let corner = |du: f32, dv: f32| {
+                let mut c = Vec3::ZERO;
+                c[axis] = sign * half[axis];
+                c[u] = du * half[u];
+                c[v] = dv * half[v];
+                rot * c + center
+            };
+            let mut face_normal = Vec3::ZERO;
+            face_normal[axis] = sign;
+            let n = rot * face_normal;
+            let (a, mut b, c, mut d) = (corner(-1.0, -1.0), corner(1.0, -1.0), corner(1.0, 1.0), corner(-1.0, 1.0));
+            if (b - a).cross(c - a).dot(n) < 0.0 {
+                std::mem::swap(&mut b, &mut d);
+            }
+            tris.push(Shape::Triangle { v: [a, b, c], n: [n; 3] });
+            tris.push(Shape::Triangle { v: [a, c, d], n: [n; 3] });
+        }
+    }
+    let shape = serde_json::json!({"type": "box", "center": center, "half_extents": half, "rotation_z": yaw});
+    let mut o = obj(name, shape, material, center);
+    o.rotation_inv = rot.transpose();
+    s.add_object(o, tris);
+}
+
 /// A torus (major radius big_r about the local z axis, tube radius r) as `nu × nv` quads split
 /// into triangles with analytic vertex normals, rotated by `rot` and moved to `center`.
 pub fn torus_mesh(big_r: f32, r: f32, nu: usize, nv: usize, rot: Mat3, center: Vec3) -> Vec<Shape> {
@@ -227,13 +261,14 @@ pub fn torus_mesh(big_r: f32, r: f32, nu: usize, nv: usize, rot: Mat3, center: V
 /// The camera band of `../shared/data` (radius 4, fov 0.6911503672599792 rad).
 const FOV: f32 = 0.691_150_4;
 
-pub const SCENES: [&str; 3] = ["spheres", "box", "torus"];
+pub const SCENES: [&str; 4] = ["spheres", "box", "torus", "cornell"];
 
 pub fn build(name: &str) -> Option<Scene> {
     Some(match name {
         "spheres" => spheres(),
         "box" => open_box(),
         "torus" => torus(),
+        "cornell" => cornell(),
         _ => return None,
     })
 }
@@ -312,6 +347,47 @@ fn open_box() -> Scene {
     s.finish()
 }
 
+/// `../shared/data/cornell` as its README.json describes it: a box open at the front (−y) and
+/// the top, 50 mm walls, a glossy sphere, a turned tall block and a small blue sphere; cameras
+/// in front of the opening. The materials are the radiogs model's (not Principled BSDF).
+fn cornell() -> Scene {
+    let rig = CameraRig {
+        radius: 4.0,
+        elev_min: 20.0,
+        elev_max: 75.0,
+        az_min: -140.0,
+        az_max: -40.0,
+        target: Vec3::new(0.0, 0.0, 0.35),
+        camera_angle_x: FOV,
+    };
+    let mut s = Scene::new("cornell", rig);
+    let white = s.add_material(mat("white_wall", rgb(0.73, 0.73, 0.7), c(0.8)));
+    let red = s.add_material(mat("red_wall", rgb(0.63, 0.06, 0.05), c(0.8)));
+    let green = s.add_material(mat("green_wall", rgb(0.12, 0.45, 0.09), c(0.8)));
+    let glossy = s.add_material(mat("glossy_sphere", rgb(0.85, 0.8, 0.7), c(0.08)));
+    let block = s.add_material(mat("tall_block", rgb(0.6, 0.6, 0.62), c(0.45)));
+    let blue = s.add_material(mat("blue_glossy_small", rgb(0.1, 0.2, 0.7), c(0.2)));
+    let slab = |s: &mut Scene, name: &str, m: usize, centre: [f32; 3], half: [f32; 3]| {
+        let (centre, half) = (Vec3::from(centre), Vec3::from(half));
+        aabox(s, name, m, centre - half, centre + half);
+    };
+    slab(&mut s, "floor", white, [0.0, 0.0, -0.025], [1.05, 1.05, 0.025]);
+    slab(&mut s, "back_wall", white, [0.0, 1.025, 0.5], [1.05, 0.025, 0.5]);
+    slab(&mut s, "left_wall_red", red, [-1.025, 0.0, 0.5], [0.025, 1.0, 0.5]);
+    slab(&mut s, "right_wall_green", green, [1.025, 0.0, 0.5], [0.025, 1.0, 0.5]);
+    sphere(&mut s, "glossy_sphere", glossy, Vec3::new(0.38, -0.25, 0.33), 0.33);
+    turned_box(
+        &mut s,
+        "tall_block",
+        block,
+        Vec3::new(-0.35, 0.3, 0.45),
+        Vec3::new(0.25, 0.25, 0.45),
+        20f32.to_radians(),
+    );
+    sphere(&mut s, "blue_glossy_small", blue, Vec3::new(-0.55, -0.5, 0.16), 0.16);
+    s.finish()
+}
+
 fn torus() -> Scene {
     let rig = CameraRig {
         radius: 4.0,
@@ -353,6 +429,34 @@ fn torus() -> Scene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cornell_block_is_a_closed_turned_box_wound_outward() {
+        let s = build("cornell").unwrap();
+        let k = s.objects.iter().position(|o| o.name == "tall_block").unwrap();
+        let (centre, half, yaw) = (Vec3::new(-0.35, 0.3, 0.45), Vec3::new(0.25, 0.25, 0.45), 20f32.to_radians());
+        let tris: Vec<&Shape> =
+            s.shapes.iter().zip(&s.prim_object).filter(|(_, o)| **o == k as u32).map(|(t, _)| t).collect();
+        assert_eq!(tris.len(), 12);
+        for tri in &tris {
+            let Shape::Triangle { v, n } = tri else { panic!("the block is a mesh") };
+            let ng = (v[1] - v[0]).cross(v[2] - v[0]).normalize();
+            let cen = (v[0] + v[1] + v[2]) / 3.0;
+            assert!(ng.dot(cen - centre) > 0.0, "winding faces inward");
+            assert!(n.iter().all(|m| m.dot(ng) > 0.999));
+        }
+        // Rays from just outside each side face (not the bottom: the floor is there) towards
+        // the centre hit the face's centre, on the face turned by the yaw.
+        let rot = Mat3::from_rotation_z(yaw);
+        for local in [Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z] {
+            let face = centre + rot * (local * half);
+            let out = rot * local;
+            let o = face + 0.05 * out;
+            let hit = s.intersect(&Ray { o, d: -out }, 10.0).expect("the block is hit");
+            assert!((hit.p - face).length() < 1e-4, "{local}: hit at {} not {}", hit.p, face);
+            assert!(hit.ng.dot(out) > 0.999);
+        }
+    }
 
     #[test]
     fn textures_and_torus_mesh() {

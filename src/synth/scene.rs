@@ -261,6 +261,20 @@ pub fn torus_mesh(big_r: f32, r: f32, nu: usize, nv: usize, rot: Mat3, center: V
 /// The camera band of `../shared/data` (radius 4, fov 0.6911503672599792 rad).
 const FOV: f32 = 0.691_150_4;
 
+/// The shared data's camera band: radius 4 about (0, 0, target_z), elevation and azimuth
+/// ranges in degrees.
+fn band(elevation: (f32, f32), azimuth: (f32, f32), target_z: f32) -> CameraRig {
+    CameraRig {
+        radius: 4.0,
+        elev_min: elevation.0,
+        elev_max: elevation.1,
+        az_min: azimuth.0,
+        az_max: azimuth.1,
+        target: Vec3::new(0.0, 0.0, target_z),
+        camera_angle_x: FOV,
+    }
+}
+
 pub const SCENES: [&str; 4] = ["spheres", "box", "torus", "cornell"];
 
 pub fn build(name: &str) -> Option<Scene> {
@@ -282,15 +296,7 @@ fn checker_floor(s: &mut Scene) -> usize {
 }
 
 fn spheres() -> Scene {
-    let rig = CameraRig {
-        radius: 4.0,
-        elev_min: 10.0,
-        elev_max: 80.0,
-        az_min: -180.0,
-        az_max: 180.0,
-        target: Vec3::new(0.0, 0.0, 0.25),
-        camera_angle_x: FOV,
-    };
+    let rig = band((10.0, 80.0), (-180.0, 180.0), 0.25);
     let mut s = Scene::new("spheres", rig);
     let floor = checker_floor(&mut s);
     disc(&mut s, "floor_disc", floor, Vec3::ZERO, 1.3);
@@ -312,15 +318,7 @@ fn spheres() -> Scene {
 }
 
 fn open_box() -> Scene {
-    let rig = CameraRig {
-        radius: 4.0,
-        elev_min: 35.0,
-        elev_max: 80.0,
-        az_min: -180.0,
-        az_max: 180.0,
-        target: Vec3::new(0.0, 0.0, 0.3),
-        camera_angle_x: FOV,
-    };
+    let rig = band((35.0, 80.0), (-180.0, 180.0), 0.3);
     let mut s = Scene::new("box", rig);
     let (h, w, t) = (0.8f32, 0.7f32, 0.05f32);
     let floor = s.add_material(mat(
@@ -351,15 +349,7 @@ fn open_box() -> Scene {
 /// the top, 50 mm walls, a glossy sphere, a turned tall block and a small blue sphere; cameras
 /// in front of the opening. The materials are the radiogs model's (not Principled BSDF).
 fn cornell() -> Scene {
-    let rig = CameraRig {
-        radius: 4.0,
-        elev_min: 20.0,
-        elev_max: 75.0,
-        az_min: -140.0,
-        az_max: -40.0,
-        target: Vec3::new(0.0, 0.0, 0.35),
-        camera_angle_x: FOV,
-    };
+    let rig = band((20.0, 75.0), (-140.0, -40.0), 0.35);
     let mut s = Scene::new("cornell", rig);
     let white = s.add_material(mat("white_wall", rgb(0.73, 0.73, 0.7), c(0.8)));
     let red = s.add_material(mat("red_wall", rgb(0.63, 0.06, 0.05), c(0.8)));
@@ -389,15 +379,7 @@ fn cornell() -> Scene {
 }
 
 fn torus() -> Scene {
-    let rig = CameraRig {
-        radius: 4.0,
-        elev_min: 10.0,
-        elev_max: 80.0,
-        az_min: -180.0,
-        az_max: 180.0,
-        target: Vec3::new(0.0, 0.0, 0.35),
-        camera_angle_x: FOV,
-    };
+    let rig = band((10.0, 80.0), (-180.0, 180.0), 0.35);
     let mut s = Scene::new("torus", rig);
     let floor = checker_floor(&mut s);
     disc(&mut s, "floor_disc", floor, Vec3::ZERO, 1.3);

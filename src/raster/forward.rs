@@ -22,10 +22,10 @@
 //! in tile order, so the hits and their order are the tile list's), 16 candidates at a time
 //! (f32x16, one structure of arrays per group, transposed from per-surfel packed records). A
 //! division-free test of ρ against the cut-off skips groups that cannot hit before the divide.
-//! The window is per hit: scalars for K = 1, for K ≤ 16 three AVX-512 registers (branchless insert and pop),
-//! otherwise a ring buffer. The blend is scalar, inlined into the window loop: that loop waits
-//! on the window's compare → permute chain, and the blend's arithmetic fills those cycles (a
-//! separate 16-hit SIMD blend pass measured no faster). Nothing per pixel is saved: the
+//! The window is per hit: scalars for K = 1, for K ≤ 16 three AVX-512 registers (branchless
+//! insert and pop), otherwise a ring buffer. The blend is scalar, inlined into the window loop:
+//! that loop waits on the window's compare → permute chain, and the blend's arithmetic fills
+//! those cycles (a separate 16-hit SIMD blend pass measured no faster). Nothing per pixel is saved: the
 //! backward pass re-runs `composite_pixel`.
 
 use super::project::{self, Projected};
@@ -1176,9 +1176,6 @@ mod window_tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
 
-    /// The register window keeps exactly the ring window's order: random inserts (with ties)
-    /// and pops, compared entry by entry after every operation.
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     #[test]
     fn single_window_matches_ring_window_at_k_1() {
         // The K = 1 path's window against the ring buffer under the forward's use: insert into
@@ -1202,6 +1199,9 @@ mod window_tests {
         }
     }
 
+    /// The register window keeps exactly the ring window's order: random inserts (with ties)
+    /// and pops, compared entry by entry after every operation.
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     #[test]
     fn register_window_matches_ring_window() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);

@@ -339,6 +339,12 @@ pub(crate) trait Window {
     /// Insert after every entry with z' ≤ z (earlier arrivals win ties). z is never NaN: a hit
     /// needs z ≥ near.
     fn insert(&mut self, z: f32, slot: u32, alpha: f32);
+    /// `pop_front` then `insert` (len > 0): what a full window does for every further hit.
+    #[inline(always)]
+    fn replace_front(&mut self, z: f32, slot: u32, alpha: f32) {
+        self.pop_front();
+        self.insert(z, slot, alpha);
+    }
 }
 
 /// Up to 32 entries in a ring buffer sorted from `head`; insertion shifts 12 bytes per entry.
@@ -525,6 +531,31 @@ impl Window for RegWindow {
             self.len += 1;
         }
     }
+    /// Pop and insert in one shift: the entries nearer than z move down one lane, z lands
+    /// after them, the farther ones stay (one masked permute per register instead of the
+    /// pop's and the insert's two). With p the first lane deeper than z: lanes below p − 1 take
+    /// their upper neighbour and z goes to p − 1; when z is nearer than the front (p = 0) it
+    /// takes the popped front's lane, as pop-then-insert puts it there.
+    #[inline(always)]
+    fn replace_front(&mut self, z: f32, slot: u32, alpha: f32) {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe {
+            let zv = _mm512_set1_ps(z);
+            let greater = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(self.z, zv);
+            // Lanes [0, max(p, 1)): the nearer run, lane 0 always in it.
+            let before = _kor_mask16(_knot_mask16(greater), 1);
+            let shift = _kshiftri_mask16::<1>(before);
+            let here = _kxor_mask16(before, shift);
+            let left = _mm512_setr_epi32(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 15);
+            let z1 = _mm512_mask_permutexvar_ps(self.z, shift, left, self.z);
+            self.z = _mm512_mask_mov_ps(z1, here, zv);
+            let s1 = _mm512_mask_permutexvar_epi32(self.s, shift, left, self.s);
+            self.s = _mm512_mask_mov_epi32(s1, here, _mm512_set1_epi32(slot as i32));
+            let a1 = _mm512_mask_permutexvar_ps(self.a, shift, left, self.a);
+            self.a = _mm512_mask_mov_ps(a1, here, _mm512_set1_ps(alpha));
+        }
+    }
 }
 
 /// Composite one pixel through the sorted window: `blend(li, z, α, T_before)` for every
@@ -615,9 +646,10 @@ impl<W: Window> PixelRun<W> {
             }
             blend(self.window.front_slot(), self.window.front_z(), alpha, self.t);
             self.t = next;
-            self.window.pop_front();
+            self.window.replace_front(self.lanes.z[l], slot, self.lanes.alpha[l]);
+        } else {
+            self.window.insert(self.lanes.z[l], slot, self.lanes.alpha[l]);
         }
-        self.window.insert(self.lanes.z[l], slot, self.lanes.alpha[l]);
     }
 
     /// Blend what the window still holds, nearest first.
@@ -1199,8 +1231,9 @@ mod window_tests {
         }
     }
 
-    /// The register window keeps exactly the ring window's order: random inserts (with ties)
-    /// and pops, compared entry by entry after every operation.
+    /// The register window keeps exactly the ring window's order: random inserts (with ties),
+    /// pops and replacements of the front (its one-shift `replace_front` against the ring's
+    /// pop then insert), compared entry by entry after every operation.
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     #[test]
     fn register_window_matches_ring_window() {
@@ -1208,24 +1241,31 @@ mod window_tests {
         for k in [1usize, 2, 5, 8, 16] {
             let (mut ring, mut reg) = (RingWindow::new(), RegWindow::new());
             let mut slot = 0u32;
-            for _ in 0..2000 {
-                if ring.len() == k || (ring.len() > 0 && rng.random::<f32>() < 0.3) {
+            for _ in 0..3000 {
+                // Ties, beyond every entry (lands on top), below every entry, anywhere.
+                let z = match rng.random_range(0..10) {
+                    0..3 => 0.5,
+                    3 => 1.0 + rng.random::<f32>(),
+                    4 => -rng.random::<f32>(),
+                    _ => rng.random::<f32>(),
+                };
+                // Slots beyond u8 and u16: the forward stores tile-list indices.
+                slot = slot.wrapping_add(1 + rng.random_range(0..100_000));
+                let alpha = rng.random::<f32>();
+                let op = rng.random::<f32>();
+                if ring.len() > 0 && (ring.len() == k || op < 0.6) {
                     assert_eq!(ring.front_slot(), reg.front_slot());
                     assert_eq!(ring.front_z(), reg.front_z());
                     assert_eq!(ring.front_alpha(), reg.front_alpha());
-                    ring.pop_front();
-                    reg.pop_front();
+                    if op < 0.3 {
+                        ring.pop_front();
+                        reg.pop_front();
+                    } else {
+                        ring.pop_front();
+                        ring.insert(z, slot, alpha);
+                        reg.replace_front(z, slot, alpha);
+                    }
                 } else {
-                    // Ties, beyond every entry (lands on top), below every entry, anywhere.
-                    let z = match rng.random_range(0..10) {
-                        0..3 => 0.5,
-                        3 => 1.0 + rng.random::<f32>(),
-                        4 => -rng.random::<f32>(),
-                        _ => rng.random::<f32>(),
-                    };
-                    // Slots beyond u8 and u16: the forward stores tile-list indices.
-                    slot = slot.wrapping_add(1 + rng.random_range(0..100_000));
-                    let alpha = rng.random::<f32>();
                     ring.insert(z, slot, alpha);
                     reg.insert(z, slot, alpha);
                 }

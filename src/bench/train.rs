@@ -38,6 +38,9 @@ pub fn run(args: &TrainBenchArgs) -> anyhow::Result<()> {
         dist_from: 0,
         normal_from: 0,
         checkpoint_every: 0,
+        // 2DGS's position rates, as in the figures of earlier sessions (the scaling for short
+        // runs would multiply them by 30000 / iters here).
+        scale_position_lr: false,
         ..TrainConfig::default()
     };
     std::fs::create_dir_all(&out)?;

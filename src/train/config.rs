@@ -107,6 +107,15 @@ pub struct TrainConfig {
     pub lr_position_init: f32,
     #[arg(long, default_value_t = 1.6e-6)]
     pub lr_position_final: f32,
+    /// Multiply both position rates by 30000 / iters (at most 10) in the nvs and init stages:
+    /// 2DGS's rates are for 30k iterations, and a shorter run at them cannot move a surfel as
+    /// far (on cornell the visual hull's surfels then settle as a cove 5–7 cm in front of the
+    /// white floor–wall crease). 3000 iterations on cornell: normal MAE 8.04° at × 1, 7.66° at
+    /// × 3, 7.16° at × 10, 8.00° at × 30 (BENCHMARKS.md, session 24). Runs saved before the
+    /// setting, and settings files without it, load as false: the rates they were written with.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    #[serde(default)]
+    pub scale_position_lr: bool,
     /// SH learning rate: the DC term; the view-dependent terms in the nvs stage take 1/20 of it.
     #[arg(long, default_value_t = 2.5e-3)]
     pub lr_sh: f32,
@@ -359,6 +368,12 @@ impl TrainConfig {
         }
     }
 
+    /// The factor on the position learning rates of the nvs and init stages
+    /// (`scale_position_lr`).
+    pub fn position_lr_factor(&self) -> f32 {
+        if self.scale_position_lr { (30000.0 / self.iters.max(1) as f32).clamp(1.0, 10.0) } else { 1.0 }
+    }
+
     pub fn at(&self, reference_iter: u32) -> u32 {
         ((reference_iter as f64) * self.iters as f64 / 30000.0).round() as u32
     }
@@ -553,5 +568,19 @@ mod tests {
             assert!(err.contains("resolution") && err.contains("not a width"), "{err}");
         }
         assert!(TrainConfig { resolution: 4, ..TrainConfig::default() }.validate().is_ok());
+    }
+
+    /// Position rates scale as 30000 / iters within [1, 10]; a settings file or a run saved
+    /// without the setting keeps the unscaled rates it was written with.
+    #[test]
+    fn position_rates_scale_for_short_runs_and_old_runs_keep_theirs() {
+        let factor = |iters| TrainConfig { iters, ..TrainConfig::default() }.position_lr_factor();
+        assert_eq!(factor(3000), 10.0);
+        assert!((factor(7000) - 30000.0 / 7000.0).abs() < 1e-6);
+        assert_eq!((factor(30000), factor(60000), factor(100)), (1.0, 1.0, 10.0));
+        assert!(TrainConfig::default().scale_position_lr);
+        let old: TrainConfig = toml::from_str("iters = 3000\n").unwrap();
+        assert!(!old.scale_position_lr);
+        assert_eq!(old.position_lr_factor(), 1.0);
     }
 }

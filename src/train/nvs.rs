@@ -133,7 +133,7 @@ pub fn checkpoint_path(run: &Path) -> PathBuf {
 fn learning_rates(cfg: &TrainConfig, stage: GeometryStage) -> LearningRates {
     let materials = stage == GeometryStage::Init;
     LearningRates {
-        means: cfg.lr_position_init,
+        means: cfg.lr_position_init * cfg.position_lr_factor(),
         log_scales: cfg.lr_scale,
         quats: cfg.lr_rotation,
         opacity_logits: cfg.lr_opacity,
@@ -585,8 +585,8 @@ pub fn run_stage(
     let mut metrics = open_metrics(&metrics_path, state.iteration)?;
     let schedule = ExponLr::position(state.extent, cfg.iters as u64);
     let schedule = ExponLr {
-        lr_init: cfg.lr_position_init * state.extent,
-        lr_final: cfg.lr_position_final * state.extent,
+        lr_init: cfg.lr_position_init * cfg.position_lr_factor() * state.extent,
+        lr_final: cfg.lr_position_final * cfg.position_lr_factor() * state.extent,
         ..schedule
     };
     let densify_cfg = DensifyConfig {

@@ -460,6 +460,31 @@ pub(crate) struct RegWindow {
 
 #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
 impl RegWindow {
+    /// Every register: the lanes in `moved` take lane `index` of the old register, then the
+    /// lane in `here` takes the new entry (insert and replace_front differ only in the masks
+    /// and the direction).
+    #[inline(always)]
+    fn shift_and_place(
+        &mut self,
+        moved: std::arch::x86_64::__mmask16,
+        index: std::arch::x86_64::__m512i,
+        here: std::arch::x86_64::__mmask16,
+        zv: std::arch::x86_64::__m512,
+        slot: u32,
+        alpha: f32,
+    ) {
+        use std::arch::x86_64::*;
+        // SAFETY: this type exists only when avx512f is enabled at compile time.
+        unsafe {
+            let z1 = _mm512_mask_permutexvar_ps(self.z, moved, index, self.z);
+            self.z = _mm512_mask_mov_ps(z1, here, zv);
+            let s1 = _mm512_mask_permutexvar_epi32(self.s, moved, index, self.s);
+            self.s = _mm512_mask_mov_epi32(s1, here, _mm512_set1_epi32(slot as i32));
+            let a1 = _mm512_mask_permutexvar_ps(self.a, moved, index, self.a);
+            self.a = _mm512_mask_mov_ps(a1, here, _mm512_set1_ps(alpha));
+        }
+    }
+
     #[inline(always)]
     fn new() -> Self {
         use std::arch::x86_64::*;
@@ -522,12 +547,7 @@ impl Window for RegWindow {
             let moved = _kshiftli_mask16::<1>(greater);
             let here = _kandn_mask16(moved, greater);
             let right = _mm512_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14);
-            let z1 = _mm512_mask_permutexvar_ps(self.z, moved, right, self.z);
-            self.z = _mm512_mask_mov_ps(z1, here, zv);
-            let s1 = _mm512_mask_permutexvar_epi32(self.s, moved, right, self.s);
-            self.s = _mm512_mask_mov_epi32(s1, here, _mm512_set1_epi32(slot as i32));
-            let a1 = _mm512_mask_permutexvar_ps(self.a, moved, right, self.a);
-            self.a = _mm512_mask_mov_ps(a1, here, _mm512_set1_ps(alpha));
+            self.shift_and_place(moved, right, here, zv, slot, alpha);
             self.len += 1;
         }
     }
@@ -548,12 +568,7 @@ impl Window for RegWindow {
             let shift = _kshiftri_mask16::<1>(before);
             let here = _kxor_mask16(before, shift);
             let left = _mm512_setr_epi32(1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 15);
-            let z1 = _mm512_mask_permutexvar_ps(self.z, shift, left, self.z);
-            self.z = _mm512_mask_mov_ps(z1, here, zv);
-            let s1 = _mm512_mask_permutexvar_epi32(self.s, shift, left, self.s);
-            self.s = _mm512_mask_mov_epi32(s1, here, _mm512_set1_epi32(slot as i32));
-            let a1 = _mm512_mask_permutexvar_ps(self.a, shift, left, self.a);
-            self.a = _mm512_mask_mov_ps(a1, here, _mm512_set1_ps(alpha));
+            self.shift_and_place(shift, left, here, zv, slot, alpha);
         }
     }
 }

@@ -18,9 +18,16 @@ fn main() -> anyhow::Result<()> {
     let data = std::path::PathBuf::from(
         args.get(1).ok_or_else(|| anyhow::anyhow!("usage: probe_init DATA [POINTS] [DELTA]"))?,
     );
-    let count: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(20000);
-    let delta: f32 = args.get(3).map(|s| s.parse()).transpose()?.unwrap_or(0.05);
+    let count: usize = match args.get(2) {
+        Some(s) => s.parse().map_err(|e| anyhow::anyhow!("POINTS {s:?}: {e}"))?,
+        None => 20000,
+    };
+    let delta: f32 = match args.get(3) {
+        Some(s) => s.parse().map_err(|e| anyhow::anyhow!("DELTA {s:?}: {e}"))?,
+        None => 0.05,
+    };
     let readme = scene_readme::load(&data)?;
+    anyhow::ensure!(!readme.objects.is_empty(), "{}: README.json lists no objects", data.display());
     let ds = Dataset::open(&data)?;
     let views = ds.views(Split::Train);
     let cams: Vec<_> = views.iter().map(|v| v.camera.clone()).collect();
@@ -59,7 +66,7 @@ fn main() -> anyhow::Result<()> {
         scores[band].push(agree);
         // In air, within 10 cm of two surfaces: a concave corner's fill.
         sdfs.sort_by(f64::total_cmp);
-        if sdfs[0] > 0.03 && sdfs[1] < 0.10 {
+        if sdfs[0] > 0.03 && sdfs.get(1).is_some_and(|&d| d < 0.10) {
             corner.push(agree);
         }
     }

@@ -18,6 +18,7 @@
 use super::TILE;
 use super::project::Projected;
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 #[derive(Clone, Debug, Default)]
 pub struct TileBins {
@@ -34,6 +35,9 @@ pub struct TileBins {
 }
 
 /// Split a slice into consecutive pieces at `offsets` (offsets[0] = 0, last = len).
+/// Inlined everywhere: left as one shared function, it changed how the backward's tile loop
+/// compiled (a spill in its hot loop, 10 % slower; BENCHMARKS.md, session 25).
+#[inline(always)]
 pub(crate) fn split_by_offsets<'a, T>(mut data: &'a mut [T], offsets: &[u32]) -> Vec<&'a mut [T]> {
     let mut out = Vec::with_capacity(offsets.len().saturating_sub(1));
     for w in offsets.windows(2) {
@@ -110,19 +114,57 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
     // generation number g is at hand when its position is chosen (`sorted_of_gen`).
     let mut order: Vec<u64> = (0..n).map(|i| ((p.depth[i].to_bits() as u64) << 32) | i as u64).collect();
     order.par_sort_unstable();
-    let mut fill: Vec<u32> = offsets[..ntiles].to_vec();
+    // The scatter in parallel over bands of tiles (each about an equal share of the pairs): a
+    // band walks every surfel in depth order and places the pairs that fall in its tiles, so its
+    // stretch of `ids` is its own. `sorted_of_gen` is indexed by pair, and a surfel's pairs can
+    // fall in two bands: it is written through relaxed atomic stores (each entry once).
+    let bands = rayon::current_num_threads().clamp(1, ntiles.max(1));
+    let mut band_tiles = vec![0usize; bands + 1];
+    for (b, bound) in band_tiles.iter_mut().enumerate().skip(1) {
+        let want = (total as u64 * b as u64 / bands as u64) as u32;
+        *bound = offsets[..=ntiles].partition_point(|&o| o < want).min(ntiles);
+    }
+    band_tiles[bands] = ntiles;
+    // Per surfel in depth order: its pair range and its first and last tile index (pairs run in
+    // tile order), read once here so that each band streams through them.
+    let spans: Vec<[u32; 4]> = order
+        .par_iter()
+        .map(|&key| {
+            let i = key as u32 as usize;
+            let (g0, g1) = (pair_offsets[i], pair_offsets[i + 1]);
+            if g0 == g1 { [g0, g1, 1, 0] } else { [g0, g1, pair_tiles[g0 as usize], pair_tiles[g1 as usize - 1]] }
+        })
+        .collect();
     let mut ids = vec![0u32; total];
     let mut sorted_of_gen = vec![0u32; total];
-    for key in order {
-        let i = key as u32;
-        let (g0, g1) = (pair_offsets[i as usize] as usize, pair_offsets[i as usize + 1] as usize);
-        for (g, &t) in (g0..g1).zip(&pair_tiles[g0..g1]) {
-            let pos = fill[t as usize];
-            fill[t as usize] += 1;
-            ids[pos as usize] = i;
-            sorted_of_gen[g] = pos;
+    // SAFETY: AtomicU32 has the size, alignment and bit validity of u32, and `sorted_of_gen` is
+    // borrowed mutably (so by nothing else) for as long as this view lives.
+    let sorted_shared: &[AtomicU32] =
+        unsafe { std::slice::from_raw_parts(sorted_of_gen.as_mut_ptr() as *const AtomicU32, total) };
+    let band_ids = split_by_offsets(&mut ids, &band_tiles.iter().map(|&t| offsets[t]).collect::<Vec<u32>>());
+    band_ids.into_par_iter().enumerate().for_each(|(b, ids)| {
+        let (tile0, tile1) = (band_tiles[b] as u32, band_tiles[b + 1] as u32);
+        if tile0 == tile1 {
+            return;
         }
-    }
+        let base = offsets[tile0 as usize];
+        let mut fill: Vec<u32> = offsets[tile0 as usize..tile1 as usize].iter().map(|&o| o - base).collect();
+        for (&key, &[g0, g1, first, last]) in order.iter().zip(&spans) {
+            if g0 == g1 || last < tile0 || first >= tile1 {
+                continue;
+            }
+            let i = key as u32;
+            let (g0, g1) = (g0 as usize, g1 as usize);
+            for (g, &t) in (g0..g1).zip(&pair_tiles[g0..g1]) {
+                if t >= tile0 && t < tile1 {
+                    let slot = &mut fill[(t - tile0) as usize];
+                    ids[*slot as usize] = i;
+                    sorted_shared[g].store(base + *slot, Ordering::Relaxed);
+                    *slot += 1;
+                }
+            }
+        }
+    });
     drop(pair_tiles);
     TileBins { tiles_x, tiles_y, offsets, ids, pair_offsets, sorted_of_gen }
 }

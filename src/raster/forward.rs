@@ -13,8 +13,9 @@
 //! that would take T below `transmittance_min` (that hit is not blended).
 //!
 //! Outputs: colour Σ w c + T·bg, alpha Σ w (= 1 − T, summed to avoid cancellation), depth Σ w z / α, median depth (z of the last
-//! blend made while T > 0.5), normal Σ w n, distortion by the 2DGS recurrence
-//! Σ_j w_j (m_j² A_j + M2_j − 2 m_j M1_j) (A, M1, M2 running sums of w, w m, w m²),
+//! blend made while T > 0.5), normal Σ w n, distortion Σ_{i<j} w_i w_j (m_i − m_j)² (2DGS) in
+//! closed form A·M2 − M1² (A, M1, M2 the final sums of w, w d, w d², d = m − m of the first
+//! blend: the shift keeps the difference from cancelling when the hits' m agree),
 //! features Σ w f, and (forward only) the surface-aware depth of GauS-SLAM.
 //!
 //! Parallel decomposition: rayon over rows of tiles; inside a tile, pixel by pixel over the
@@ -37,6 +38,7 @@ use super::{
 use crate::camera::Camera;
 use crate::surfels::Surfels;
 use rayon::prelude::*;
+use std::cell::{Ref, RefCell};
 use wide::f32x16;
 
 /// Lanes of a packed candidate record (`Projected::packed`).
@@ -60,26 +62,46 @@ const PADDING: [f32; 16] = {
 };
 
 /// Candidates 16 at a time, each group one vector per record lane (structure of arrays per
-/// group: what `eval16` reads), the last group padded with never-hit records.
+/// group: what `eval16` reads), the last group padded with never-hit records. Groups are
+/// transposed on first use (`group`): on deep scenes a tile's pixels all stop (T < 1e-4) long
+/// before the end of its list (random 100k scene at 800²: 18 % of the quarter lists' entries
+/// are ever reached), so transposing whole lists up front was most of a tile's load.
 #[derive(Default, Clone, Debug)]
 pub(crate) struct Candidates {
     pub n: usize,
     /// Each entry's index in the tile list.
     pub slot: Vec<u32>,
-    pub groups: Vec<[f32x16; PK_FIELDS]>,
+    /// The groups transposed so far (interior mutability: compositing holds the tile shared,
+    /// with its blend closures).
+    groups: RefCell<Vec<[f32x16; PK_FIELDS]>>,
 }
 
 impl Candidates {
-    /// Fill with the tile's records at `slot` (transposed 16 at a time).
-    fn fill(&mut self, records: &[[f32; 16]]) {
+    /// Take the entries now in `slot`; their groups are transposed when first asked for.
+    fn reset(&mut self) {
         self.n = self.slot.len();
-        self.groups.clear();
-        for chunk in self.slot.chunks(16) {
-            let rows: [f32x16; 16] =
-                std::array::from_fn(|l| f32x16::new(chunk.get(l).map_or(PADDING, |&j| records[j as usize])));
-            let cols = super::lanes::transpose(rows);
-            self.groups.push(std::array::from_fn(|f| cols[f]));
+        self.groups.get_mut().clear();
+    }
+
+    /// Group `g` (entries 16g .. 16g + 16), transposing it from `records` on first use.
+    /// Groups are asked for in order from 0, so `g` is at most the count transposed.
+    #[inline(always)]
+    fn group(&self, g: usize, records: &[[f32; 16]]) -> Ref<'_, [f32x16; PK_FIELDS]> {
+        if g >= self.groups.borrow().len() {
+            self.transpose_next(records);
         }
+        Ref::map(self.groups.borrow(), |groups| &groups[g])
+    }
+
+    #[inline(never)]
+    fn transpose_next(&self, records: &[[f32; 16]]) {
+        let mut groups = self.groups.borrow_mut();
+        let start = groups.len() * 16;
+        let chunk = &self.slot[start..(start + 16).min(self.n)];
+        let rows: [f32x16; 16] =
+            std::array::from_fn(|l| f32x16::new(chunk.get(l).map_or(PADDING, |&j| records[j as usize])));
+        let cols = super::lanes::transpose(rows);
+        groups.push(std::array::from_fn(|f| cols[f]));
     }
 }
 
@@ -99,11 +121,13 @@ pub(crate) struct TileData {
     pub records: Vec<[f32; 16]>,
     pub origin: (u32, u32),
     pub quarters: [Candidates; 4],
-    /// Colour and normal per candidate (only when loaded with `shading`).
+    /// Colour and normal per candidate (`load_shading`: the backward's; the forward blends
+    /// per-surfel rows, `blend_rows`).
     pub colour: Vec<[f32; 3]>,
     pub normal: Vec<[f32; 3]>,
-    /// What the forward blends per candidate, one 16-lane row each (`load_blend_rows`):
-    /// colour, normal, 1 (for Σ w), then up to `ROW_FEATURES` feature channels.
+    /// What the forward blends per candidate (`load_blend_rows`, copied from the per-surfel
+    /// `blend_rows`). The tile keeps its own copy: blending straight from the per-surfel rows
+    /// (a gather per blend) cost training-like scenes 1 ms a frame (BENCHMARKS.md, session 25).
     pub blend_rows: Vec<f32x16>,
 }
 
@@ -149,35 +173,50 @@ impl TileData {
         }
         for (quarter, &len) in self.quarters.iter_mut().zip(&lens) {
             quarter.slot.truncate(len);
-            quarter.fill(&self.records);
+            quarter.reset();
         }
-        self.colour.clear();
-        if !p.colour.is_empty() {
-            self.colour.extend(ids.iter().map(|&i| p.colour[i as usize]));
-        }
-        self.normal.clear();
-        self.normal.extend(ids.iter().map(|&i| p.normal[i as usize]));
     }
 
-    /// Fill `blend_rows` (after `load`): a hit is then blended with one 16-lane multiply-add.
-    pub fn load_blend_rows(&mut self, features: Option<Features>) {
-        let nch = features.map_or(0, |f| f.channels);
+    /// Gather the candidates' blend rows (after `load`; for the forward).
+    pub fn load_blend_rows(&mut self, rows: &[f32x16]) {
         self.blend_rows.clear();
-        for (li, &id) in self.ids.iter().enumerate() {
+        self.blend_rows.extend(self.ids.iter().map(|&i| rows[i as usize]));
+    }
+
+    /// Gather the candidates' colour and normal (after `load`; for the backward).
+    pub fn load_shading(&mut self, p: &Projected) {
+        self.colour.clear();
+        if !p.colour.is_empty() {
+            self.colour.extend(self.ids.iter().map(|&i| p.colour[i as usize]));
+        }
+        self.normal.clear();
+        self.normal.extend(self.ids.iter().map(|&i| p.normal[i as usize]));
+    }
+}
+
+/// What the forward blends per surfel, one 16-lane row each: colour, normal, 1 (for Σ w), then
+/// up to `ROW_FEATURES` feature channels; a hit is blended with one 16-lane multiply-add.
+/// Built once per surfel per render; a tile then copies one row per candidate instead of
+/// gathering colour and normal and assembling the row (a large surfel sits in many tiles).
+fn blend_rows(p: &Projected, features: Option<Features>) -> Vec<f32x16> {
+    let nch = features.map_or(0, |f| f.channels);
+    (0..p.normal.len())
+        .into_par_iter()
+        .map(|id| {
             let mut row = [0.0f32; 16];
-            if let Some(c) = self.colour.get(li) {
+            if let Some(c) = p.colour.get(id) {
                 row[..3].copy_from_slice(c);
             }
-            row[3..6].copy_from_slice(&self.normal[li]);
+            row[3..6].copy_from_slice(&p.normal[id]);
             row[BLEND_ONE] = 1.0;
             if let Some(fe) = features
                 && nch <= ROW_FEATURES
             {
-                row[BLEND_FEAT..BLEND_FEAT + nch].copy_from_slice(&fe.data[id as usize * nch..(id as usize + 1) * nch]);
+                row[BLEND_FEAT..BLEND_FEAT + nch].copy_from_slice(&fe.data[id * nch..(id + 1) * nch]);
             }
-            self.blend_rows.push(f32x16::new(row));
-        }
-    }
+            f32x16::new(row)
+        })
+        .collect()
 }
 
 /// Ring-buffer size of the window (a power of two ≥ MAX_WINDOW).
@@ -285,9 +324,17 @@ pub(crate) fn splat_alpha(rho: f32x16, opacity: f32x16) -> (f32x16, f32x16, f32x
 /// candidates; forward and backward make identical decisions through `splat_cross` / `splat_finish`).
 /// Returns the hit mask; `out` is only written when the mask is non-zero.
 #[inline(always)]
-pub(crate) fn eval16(td: &Candidates, j0: usize, px: f32, py: f32, s: &RasterSettings, out: &mut Lanes) -> u32 {
+pub(crate) fn eval16(
+    td: &Candidates,
+    records: &[[f32; 16]],
+    j0: usize,
+    px: f32,
+    py: f32,
+    s: &RasterSettings,
+    out: &mut Lanes,
+) -> u32 {
     let (near, alpha_min) = (s.near, s.alpha_min);
-    let g = &td.groups[j0 / 16];
+    let g = td.group(j0 / 16, records);
     let tw = [g[PK_TW], g[PK_TW + 1], g[PK_TW + 2]];
     let c = splat_cross(
         px,
@@ -714,8 +761,9 @@ fn composite_with<W: Window>(
     let mut b = PixelRun { window: w1, t: 1.0, live: two, evaluated: all, lanes: Lanes::default() };
     let mut j0 = 0;
     while j0 < list.n && (a.live || b.live) {
-        let mut ma = if a.live { eval16(list, j0, p[0].0, p[0].1, s, &mut a.lanes) } else { 0 };
-        let mut mb = if b.live { eval16(list, j0, p[1].0, p[1].1, s, &mut b.lanes) } else { 0 };
+        let records = &td.records;
+        let mut ma = if a.live { eval16(list, records, j0, p[0].0, p[0].1, s, &mut a.lanes) } else { 0 };
+        let mut mb = if b.live { eval16(list, records, j0, p[1].0, p[1].1, s, &mut b.lanes) } else { 0 };
         // Alternate the two pixels' hits so their window chains interleave.
         while (ma | mb) != 0 {
             if ma != 0 {
@@ -758,10 +806,10 @@ struct PixelSums {
     features: [f32; MAX_FEATURES],
     /// Σ w z.
     depth: f32,
-    /// Running Σ w m and Σ w m² of the distortion recurrence, and the distortion itself.
+    /// Σ w d and Σ w d² with d = m − `m_first` (distortion = A·M2 − M1², shift-invariant).
     m1: f32,
     m2: f32,
-    distortion: f32,
+    m_first: f32,
     median: f32,
     /// Surface-aware depth: Σ w ẑ and Σ w ẑ² (see `RenderOutput::surface_depth`).
     surface: f32,
@@ -786,9 +834,11 @@ impl PixelSums {
         self.depth += wgt * z;
         if s.outputs.distortion {
             let m = norm_depth(z, s.near, s.far);
-            self.distortion += (m * m * (1.0 - t) + self.m2 - 2.0 * m * self.m1) * wgt;
-            self.m1 += m * wgt;
-            self.m2 += m * m * wgt;
+            // T is exactly 1 before the first blend only (every blended α ≥ α_min > 0).
+            self.m_first = if t == 1.0 { m } else { self.m_first };
+            let d = m - self.m_first;
+            self.m1 += d * wgt;
+            self.m2 += d * d * wgt;
         }
         if t > 0.5 {
             self.median = z;
@@ -831,7 +881,7 @@ impl PixelSums {
         r[REC_ALPHA] = a;
         r[REC_DEPTH] = if a > 0.0 { self.depth / a } else { 0.0 };
         r[REC_MEDIAN] = self.median;
-        r[REC_DIST] = self.distortion;
+        r[REC_DIST] = (a * self.m2 - self.m1 * self.m1).max(0.0);
         r[REC_SURFACE] = if a > 0.0 { self.surface / a } else { 0.0 };
         if nch <= ROW_FEATURES {
             r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
@@ -928,6 +978,7 @@ fn render_impl(
     }
     let proj = project::project(surfels, camera, settings);
     let bins = tiles::bin(&proj, w, h, settings.alpha_min, settings.filter_inv_square);
+    let rows = blend_rows(&proj, features);
     let stride = REC_FEAT + nch;
     let mut buf = vec![0.0f32; (w * h) as usize * stride];
     let add = |a: (u64, u64), b: (u64, u64)| (a.0 + b.0, a.1 + b.1);
@@ -945,14 +996,16 @@ fn render_impl(
                         || (TileData::default(), Vec::new()),
                         |(td, pending), ((ty, chunk), row)| {
                             let rec = Some((row, pending, cap));
-                            render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, rec)
+                            render_tile_row(
+                                &proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, &rows, rec,
+                            )
                         },
                     )
                     .reduce(|| (0, 0), add)
             }
             None => chunks
                 .map_init(TileData::default, |td, (ty, chunk)| {
-                    render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, None)
+                    render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, &rows, None)
                 })
                 .reduce(|| (0, 0), add),
         }
@@ -1075,6 +1128,7 @@ fn render_tile_row(
     chunk: &mut [f32],
     stride: usize,
     td: &mut TileData,
+    rows: &[f32x16],
     // The row's hit record, a scratch list for the second pixel of a pair (whose blends
     // interleave with the first's) and the row's share of the record budget.
     mut record: Option<(&mut RowHits, &mut Vec<RecordedHit>, usize)>,
@@ -1099,7 +1153,7 @@ fn render_tile_row(
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
         td.load(proj, ids, (tx * TILE, ty * TILE));
-        td.load_blend_rows(features);
+        td.load_blend_rows(rows);
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
         for y in y0..y1 {

@@ -146,7 +146,8 @@ pub struct RenderOutput {
     pub median_depth: Vec<f32>,
     /// World normal Σ w n (not normalised).
     pub normal: Vec<[f32; 3]>,
-    /// Σ_{i<j} w_i w_j (m_i − m_j)², m = far/(far − near) · (1 − near/z) (the 2DGS recurrence).
+    /// Σ_{i<j} w_i w_j (m_i − m_j)², m = far/(far − near) · (1 − near/z) (2DGS; summed in closed form,
+    /// A·M2 − M1² over m relative to the first blended hit).
     pub distortion: Vec<f32>,
     /// Σ w f, pixel-major, `channels` values per pixel.
     pub features: Vec<f32>,

@@ -88,6 +88,7 @@ impl Candidates {
     #[inline(always)]
     fn group(&self, g: usize, records: &[[f32; 16]]) -> Ref<'_, [f32x16; PK_FIELDS]> {
         if g >= self.groups.borrow().len() {
+            debug_assert_eq!(g, self.groups.borrow().len(), "groups are asked for in order");
             self.transpose_next(records);
         }
         Ref::map(self.groups.borrow(), |groups| &groups[g])

@@ -34,6 +34,14 @@ pub struct TileBins {
     pub sorted_of_gen: Vec<u32>,
 }
 
+/// A slice of u32 viewed as atomics for the time of its exclusive borrow (what the unstable
+/// `AtomicU32::from_mut_slice` does): lets threads store to disjoint but interleaved entries.
+fn as_atomic(v: &mut [u32]) -> &[AtomicU32] {
+    // SAFETY: AtomicU32 has the size, alignment and bit validity of u32, and the returned view
+    // borrows `v` exclusively, so nothing else reads or writes it meanwhile.
+    unsafe { std::slice::from_raw_parts(v.as_mut_ptr() as *const AtomicU32, v.len()) }
+}
+
 /// Split a slice into consecutive pieces at `offsets` (offsets[0] = 0, last = len).
 /// Inlined everywhere: left as one shared function, it changed how the backward's tile loop
 /// compiled (a spill in its hot loop, 10 % slower; BENCHMARKS.md, session 25).
@@ -137,10 +145,7 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
         .collect();
     let mut ids = vec![0u32; total];
     let mut sorted_of_gen = vec![0u32; total];
-    // SAFETY: AtomicU32 has the size, alignment and bit validity of u32, and `sorted_of_gen` is
-    // borrowed mutably (so by nothing else) for as long as this view lives.
-    let sorted_shared: &[AtomicU32] =
-        unsafe { std::slice::from_raw_parts(sorted_of_gen.as_mut_ptr() as *const AtomicU32, total) };
+    let sorted_shared = as_atomic(&mut sorted_of_gen);
     let band_ids = split_by_offsets(&mut ids, &band_tiles.iter().map(|&t| offsets[t]).collect::<Vec<u32>>());
     band_ids.into_par_iter().enumerate().for_each(|(b, ids)| {
         let (tile0, tile1) = (band_tiles[b] as u32, band_tiles[b + 1] as u32);

@@ -835,7 +835,8 @@ impl PixelSums {
         self.depth += wgt * z;
         if s.outputs.distortion {
             let m = norm_depth(z, s.near, s.far);
-            // T is exactly 1 before the first blend only (every blended α ≥ α_min > 0).
+            // T is exactly 1 until the first blend with α > 0; a blend before it weighs
+            // nothing, so moving the reference there changes no sum.
             self.m_first = if t == 1.0 { m } else { self.m_first };
             let d = m - self.m_first;
             self.m1 += d * wgt;

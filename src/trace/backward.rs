@@ -26,7 +26,7 @@ use crate::sh::{self, SH_COEFFS};
 use crate::shade::incident::{decode, decode_derivative};
 use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat, rotation_from_quat_backward, sigmoid};
 use crate::trace::bvh::{PreparedRay, Tracer};
-use crate::trace::forward::{HitRecord, RecordedHit, coherent_order, march, prefetch, sh_colour, unit};
+use crate::trace::forward::{HitRecord, RecordedHit, coherent_order, march, prefetch, prefetch_all, sh_colour, unit};
 use crate::trace::{ALPHA_MAX, Features, Ray, RayGrad};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -387,8 +387,20 @@ impl Ctx<'_> {
                 (&rec.hits[a as usize..b as usize], rec.t_final[ray_index])
             }
             None => {
-                let t =
-                    march(tracer, &r, |_| {}, |h, trans| cast.push(RecordedHit { hit: *h, trans, colour: [0.0; 3] }));
+                // The hits' scattered loads below (geometry, payload, gradient slot): asked for
+                // as the traversal finds them.
+                let slot_of = &buf.slot_of;
+                let hint = |i: u32| {
+                    let i = i as usize;
+                    prefetch(&self.geometry[i]);
+                    prefetch(&slot_of[i]);
+                    if use_features {
+                        prefetch_all(&self.fdata[i * ch..][..ch]);
+                    } else {
+                        prefetch_all(&surfels.sh[i][..self.ncoef]);
+                    }
+                };
+                let t = march(tracer, &r, hint, |h, trans| cast.push(RecordedHit { hit: *h, trans, colour: [0.0; 3] }));
                 (&cast, t)
             }
         };

@@ -771,6 +771,9 @@ impl Tracer {
     /// their entry distance (`push_children`), so a pop is culled by a compare when the k-th
     /// distance has since dropped below it (the same test as re-running the slab, as the
     /// box's exit is ≥ its entry).
+    ///
+    /// `hint` sees the surfel index of every hit as it enters the set, so the caller can
+    /// prefetch its payload while the traversal goes on (a hit may still be displaced).
     pub(crate) fn gather(
         &self,
         r: &PreparedRay,
@@ -778,6 +781,7 @@ impl Tracer {
         k: usize,
         (trans0, stop_below): (f32, f32),
         out: &mut [Hit; MAX_CHUNK],
+        hint: &impl Fn(u32),
     ) -> usize {
         if self.wide.is_empty() {
             return 0;
@@ -816,7 +820,7 @@ impl Tracer {
             }
             if node & LEAF_BIT != 0 {
                 let block = (node & !LEAF_BIT) as usize;
-                self.leaf_hits(block, r, after, k, (trans0, stop_below), out, (&mut n, &mut kept), &mut cull);
+                self.leaf_hits(block, r, after, k, (trans0, stop_below), out, (&mut n, &mut kept), &mut cull, hint);
                 continue;
             }
             let nd = &self.wide[node as usize];
@@ -865,6 +869,7 @@ impl Tracer {
         out: &mut [Hit; MAX_CHUNK],
         (n, kept): (&mut usize, &mut f32),
         cull: &mut f32,
+        hint: &impl Fn(u32),
     ) {
         let (t_min, t_max) = (self.settings.t_min, self.settings.t_max);
         let p = &self.blocks[block];
@@ -924,6 +929,7 @@ impl Tracer {
                 j -= 1;
             }
             out[j] = Hit { t, index, slot: (block * W + lane) as u32, alpha };
+            hint(index);
             if *n < k {
                 *n += 1;
             }
@@ -960,7 +966,7 @@ impl Tracer {
     pub fn closest_hit(&self, origin: [f32; 3], dir: [f32; 3]) -> Option<(f32, u32)> {
         let r = PreparedRay::new(origin, dir);
         let mut out = [Hit::default(); MAX_CHUNK];
-        let n = self.gather(&r, (f32::NEG_INFINITY, 0), 1, (1.0, 0.0), &mut out);
+        let n = self.gather(&r, (f32::NEG_INFINITY, 0), 1, (1.0, 0.0), &mut out, &|_| {});
         (n == 1).then(|| (out[0].t, out[0].index))
     }
 }

@@ -20,17 +20,16 @@ use crate::trace::{Features, MAX_CHUNK, Ray, RayOutput, TraceSettings};
 use rayon::prelude::*;
 
 /// Visit the composited hits of one ray in order: `f(hit, T_before)`; returns the final T.
-/// `ahead` sees each gathered chunk before its hits are visited (to prefetch their data).
+/// `hint` sees each hit's surfel index as the traversal finds it (to prefetch its data).
 #[inline]
-pub(crate) fn march(tracer: &Tracer, r: &PreparedRay, ahead: impl Fn(&[Hit]), mut f: impl FnMut(&Hit, f32)) -> f32 {
+pub(crate) fn march(tracer: &Tracer, r: &PreparedRay, hint: impl Fn(u32), mut f: impl FnMut(&Hit, f32)) -> f32 {
     let k = tracer.settings.chunk.clamp(1, MAX_CHUNK);
     let min_t = tracer.settings.min_transmittance;
     let mut trans = 1.0f32;
     let mut after = (f32::NEG_INFINITY, 0u32);
     let mut buf = [Hit::default(); MAX_CHUNK];
     loop {
-        let n = tracer.gather(r, after, k, (trans, min_t), &mut buf);
-        ahead(&buf[..n]);
+        let n = tracer.gather(r, after, k, (trans, min_t), &mut buf, &hint);
         for h in &buf[..n] {
             f(h, trans);
             trans *= 1.0 - h.alpha;
@@ -60,11 +59,35 @@ pub(crate) fn sh_colour(coeffs: &[[f32; 3]; SH_COEFFS], basis: &[f32; SH_COEFFS]
 /// A hint to bring `p`'s cache line in (no effect off x86-64).
 #[inline(always)]
 pub(crate) fn prefetch<T>(p: &T) {
+    prefetch_byte(p as *const T as *const u8);
+}
+
+/// A hint to bring in every cache line `s` touches: its first byte, one every 64 and its last
+/// (a 192-byte SH array 4-byte aligned can touch four lines).
+#[inline(always)]
+pub(crate) fn prefetch_all<T>(s: &[T]) {
+    let bytes = std::mem::size_of_val(s);
+    if bytes == 0 {
+        return;
+    }
+    let p = s.as_ptr() as *const u8;
+    let mut at = 0;
+    while at < bytes {
+        prefetch_byte(p.wrapping_add(at));
+        at += 64;
+    }
+    prefetch_byte(p.wrapping_add(bytes - 1));
+}
+
+#[inline(always)]
+fn prefetch_byte(p: *const u8) {
     #[cfg(target_arch = "x86_64")]
     // SAFETY: a prefetch is a hint; it never faults and reads nothing observable.
     unsafe {
-        std::arch::x86_64::_mm_prefetch(p as *const T as *const i8, std::arch::x86_64::_MM_HINT_T0);
+        std::arch::x86_64::_mm_prefetch(p as *const i8, std::arch::x86_64::_MM_HINT_T0);
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
 }
 
 pub(crate) fn unit(d: [f32; 3]) -> ([f32; 3], f32) {
@@ -279,20 +302,13 @@ fn trace_one(
     let mut o = RayOutput::default();
     let two_sided = tracer.settings.two_sided;
     let linear = tracer.settings.linear_radiance;
-    // The payload loads are scattered: ask for a chunk's before compositing it.
+    // The payload loads are scattered: ask for each hit's as the traversal finds it.
     let feat_data: Option<(&[f32], usize)> = feat.as_ref().map(|(data, ch, _)| (*data, *ch));
-    let ahead = |hits: &[Hit]| match feat_data {
-        Some((data, ch)) => hits.iter().for_each(|h| prefetch(&data[h.index as usize * ch])),
-        None => hits.iter().for_each(|h| {
-            let coeffs = &surfels.sh[h.index as usize];
-            prefetch(&coeffs[0]);
-            if ncoef > 4 {
-                prefetch(&coeffs[5]);
-                prefetch(&coeffs[10]);
-            }
-        }),
+    let hint = |i: u32| match feat_data {
+        Some((data, ch)) => prefetch_all(&data[i as usize * ch..][..ch]),
+        None => prefetch_all(&surfels.sh[i as usize][..ncoef]),
     };
-    let t_final = march(tracer, &r, ahead, |h, trans| {
+    let t_final = march(tracer, &r, hint, |h, trans| {
         let w = trans * h.alpha;
         let i = h.index as usize;
         match feat.as_mut() {

@@ -91,7 +91,7 @@ pub struct TrainConfig {
     /// 1/σ² (px⁻²) of the rasteriser's screen-space fallback filter ρ₂ = f·|μ₂D − pixel|².
     /// 2DGS uses 2 (σ = 0.71 px); 8 (σ = 0.35 px) measured better normals and views on both
     /// shared scenes and the demo (BENCHMARKS.md, session 18). A run whose config predates the
-    /// setting loads as 2, the value it was trained with.
+    /// setting loads as 2, the value it was trained with (a `--config` file without it: 8).
     #[arg(long, default_value_t = 8.0)]
     #[serde(default = "crate::raster::filter_inv_square_2dgs")]
     pub filter_inv_square: f32,
@@ -112,7 +112,8 @@ pub struct TrainConfig {
     /// far (on cornell the visual hull's surfels then settle as a cove 5–7 cm in front of the
     /// white floor–wall crease). 3000 iterations on cornell: normal MAE 8.04° at × 1, 7.66° at
     /// × 3, 7.16° at × 10, 8.00° at × 30 (BENCHMARKS.md, session 24). Runs saved before the
-    /// setting, and settings files without it, load as false: the rates they were written with.
+    /// setting load as false, the rates they were trained with (a `--config` file without it:
+    /// true).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     #[serde(default)]
     pub scale_position_lr: bool,
@@ -379,13 +380,23 @@ impl TrainConfig {
     }
 
     /// Merge: defaults < file < the flags the user typed (named in `explicit`).
+    ///
+    /// A key the file leaves out takes the built-in default, including the settings whose
+    /// serde default is the older value (`filter_inv_square`, `scale_position_lr`): those
+    /// older values are for reading a run folder saved before the setting existed
+    /// (`eval::load_run_config`), not for a hand-written settings file.
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
         let Some(path) = &cli.config else { return Ok(cli.clone()) };
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let from_file: TrainConfig = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
-        let mut merged = toml::Value::try_from(&from_file).map_err(|e| Error::invalid("config", e.to_string()))?;
-        let cli_value = toml::Value::try_from(cli).map_err(|e| Error::invalid("config", e.to_string()))?;
+        // Parsed whole first, so unknown keys and bad values are reported with their line.
+        let _: TrainConfig = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
+        let from_file: toml::Table = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
+        // The command line's values (flags typed or their defaults), then the file's keys,
+        // then the typed flags again.
+        let mut merged = toml::Value::try_from(cli).map_err(|e| Error::invalid("config", e.to_string()))?;
+        let cli_value = merged.clone();
         if let (Some(table), Some(cli_table)) = (merged.as_table_mut(), cli_value.as_table()) {
+            table.extend(from_file);
             for key in explicit {
                 if let Some(v) = cli_table.get(key) {
                     table.insert(key.clone(), v.clone());
@@ -582,5 +593,40 @@ mod tests {
         let old: TrainConfig = toml::from_str("iters = 3000\n").unwrap();
         assert!(!old.scale_position_lr);
         assert_eq!(old.position_lr_factor(), 1.0);
+    }
+
+    /// A hand-written `--config` file that leaves out the settings whose serde default is the
+    /// older value gets the built-in defaults for them; the run-folder reader keeps the older
+    /// values (what a run saved before the setting was trained with); a file that names them wins.
+    #[test]
+    fn a_settings_file_without_a_key_gets_the_built_in_default() {
+        let dir = std::env::temp_dir().join(format!("radiogs-cfg-defaults-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("partial.toml");
+        std::fs::write(&file, "iters = 3000\n").unwrap();
+        let cli = TrainConfig { config: Some(file.clone()), ..TrainConfig::default() };
+        let merged = TrainConfig::resolve(&cli, &[]).unwrap();
+        let d = TrainConfig::default();
+        assert_eq!(merged.iters, 3000);
+        assert!(merged.scale_position_lr && d.scale_position_lr);
+        assert_eq!(merged.filter_inv_square, d.filter_inv_square);
+        assert_ne!(d.filter_inv_square, crate::raster::filter_inv_square_2dgs());
+        assert_eq!(
+            toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
+            toml::to_string(&merged).unwrap()
+        );
+
+        let run = dir.join("run");
+        std::fs::create_dir_all(&run).unwrap();
+        std::fs::write(run.join("config.toml"), "iters = 3000\n").unwrap();
+        let saved = crate::eval::load_run_config(&run).unwrap();
+        assert!(!saved.scale_position_lr);
+        assert_eq!(saved.filter_inv_square, crate::raster::filter_inv_square_2dgs());
+
+        std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\n").unwrap();
+        let named = TrainConfig::resolve(&cli, &[]).unwrap();
+        assert!(!named.scale_position_lr);
+        assert_eq!(named.filter_inv_square, 2.0);
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

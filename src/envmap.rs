@@ -294,7 +294,39 @@ impl EnvMap {
         }
         acc.map(|v| (v / total) as f32)
     }
+
+    /// Unoccluded cosine-weighted irradiance over π for the unit normal `n`: the radiance a
+    /// white Lambertian surface facing `n` reflects under this light alone,
+    /// (1/π) ∫ L(ω) max(0, n·ω) dω, summed over the texels at their centre directions.
+    pub fn lambert_radiance(&self, n: [f32; 3]) -> [f32; 3] {
+        let mut acc = [0.0f64; 3];
+        for j in 0..self.height {
+            let sa = self.texel_solid_angle(j) as f64;
+            for i in 0..self.width {
+                let d = self.texel_dir(i, j);
+                let cos = (d[0] * n[0] + d[1] * n[1] + d[2] * n[2]).max(0.0) as f64;
+                if cos > 0.0 {
+                    let t = self.texels[j * self.width + i];
+                    for ch in 0..3 {
+                        acc[ch] += sa * cos * t[ch] as f64;
+                    }
+                }
+            }
+        }
+        acc.map(|v| (v / std::f64::consts::PI) as f32)
+    }
 }
+
+/// The six axis normals ±x, ±y, ±z (world, z up) and their names, for comparing a recovered
+/// light with the true one by [`EnvMap::lambert_radiance`].
+pub const AXIS_NORMALS: [(&str, [f32; 3]); 6] = [
+    ("+x", [1.0, 0.0, 0.0]),
+    ("-x", [-1.0, 0.0, 0.0]),
+    ("+y", [0.0, 1.0, 0.0]),
+    ("-y", [0.0, -1.0, 0.0]),
+    ("+z", [0.0, 0.0, 1.0]),
+    ("-z", [0.0, 0.0, -1.0]),
+];
 
 /// atan2(y, x) in (−π, π] by a degree-11 odd minimax polynomial of atan on [0, 1] (max error
 /// 1.9e-6 rad, checked against f64 in the tests); atan2(0, 0) = 0 like the libm.
@@ -343,6 +375,46 @@ mod tests {
         let lhs: f32 = small.texels.iter().zip(&v_small).map(|(x, v)| x[0] * v[0] + x[1] * v[1] + x[2] * v[2]).sum();
         let rhs: f32 = env.texels.iter().zip(&v_full).map(|(x, v)| x[0] * v[0] + x[1] * v[1] + x[2] * v[2]).sum();
         assert!((lhs - rhs).abs() < 1e-3 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+    }
+
+    #[test]
+    fn lambert_radiance_matches_the_analytic_cases() {
+        // A constant sky of radiance c: a white Lambertian surface reflects c whatever it faces.
+        let c = [0.5f32, 1.0, 2.0];
+        let env = EnvMap::constant(128, 64, c);
+        for (name, n) in AXIS_NORMALS {
+            let r = env.lambert_radiance(n);
+            for ch in 0..3 {
+                assert!((r[ch] - c[ch]).abs() < 2e-3 * c[ch], "{name}: {r:?} vs {c:?}");
+            }
+        }
+        // The upper hemisphere alone (z > 0; the equator falls between texel rows): facing up
+        // the full c, facing down nothing, facing sideways c/2, and c·(1 + sin 45°)/2 at 45°.
+        let mut env = EnvMap::constant(128, 64, [0.0; 3]);
+        for j in 0..32 {
+            for i in 0..128 {
+                env.texels[j * 128 + i] = [1.0; 3];
+            }
+        }
+        let s = std::f32::consts::FRAC_1_SQRT_2;
+        for (n, want) in [
+            ([0.0, 0.0, 1.0], 1.0),
+            ([0.0, 0.0, -1.0], 0.0),
+            ([1.0, 0.0, 0.0], 0.5),
+            ([0.0, -1.0, 0.0], 0.5),
+            ([s, 0.0, s], (1.0 + s) / 2.0),
+        ] {
+            let r = env.lambert_radiance(n)[0];
+            assert!((r - want).abs() < 3e-3, "n {n:?}: {r} vs {want}");
+        }
+        // A single bright texel: its solid angle × cos / π, nothing from behind.
+        let mut env = EnvMap::constant(128, 64, [0.0; 3]);
+        let (i, j) = (40, 20);
+        env.texels[j * 128 + i] = [100.0; 3];
+        let d = env.texel_dir(i, j);
+        let want = 100.0 * env.texel_solid_angle(j) / std::f32::consts::PI;
+        assert!((env.lambert_radiance(d)[1] - want).abs() < 1e-4 * want);
+        assert_eq!(env.lambert_radiance(d.map(|x| -x))[1], 0.0);
     }
 
     #[test]

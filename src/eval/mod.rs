@@ -130,6 +130,53 @@ fn straight_to_image(rgb: &[[f32; 3]], alpha: &[f32], w: u32, h: u32, f: impl Fn
     to_image(&rgb, Some(alpha), w, h)
 }
 
+/// The recovered light against the true one, as white Lambertian surfaces facing the six axis
+/// directions would see them (see [`compare_light`]).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LightComparison {
+    pub normals: Vec<LightAtNormal>,
+    /// Mean over the normals and channels of |ln(ours / GT)|, both floored at 1e-3 × the
+    /// truth's mean.
+    pub log_error: f32,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LightAtNormal {
+    pub normal: String,
+    pub ours: [f32; 3],
+    pub gt: [f32; 3],
+}
+
+/// Compare a recovered env with the true one through [`EnvMap::lambert_radiance`] for the six
+/// axis normals. `albedo_scale` is the eval's median albedo scale: an albedo × s renders the
+/// same images as the env ÷ s, so ours is divided by it per channel first.
+pub fn compare_light(
+    ours: &crate::envmap::EnvMap,
+    gt: &crate::envmap::EnvMap,
+    albedo_scale: [f32; 3],
+) -> LightComparison {
+    let normals: Vec<LightAtNormal> = crate::envmap::AXIS_NORMALS
+        .iter()
+        .map(|&(name, n)| {
+            let o = ours.lambert_radiance(n);
+            LightAtNormal {
+                normal: name.to_string(),
+                ours: std::array::from_fn(|c| o[c] / albedo_scale[c].max(1e-6)),
+                gt: gt.lambert_radiance(n),
+            }
+        })
+        .collect();
+    // Values below 1e-3 × the truth's mean count as that floor, so a black direction scores
+    // a large but finite error.
+    let mean_gt = normals.iter().flat_map(|l| l.gt).sum::<f32>() / 18.0;
+    let floor = (1e-3 * mean_gt).max(1e-12);
+    let sum: f64 = normals
+        .iter()
+        .flat_map(|l| (0..3).map(|c| ((l.ours[c].max(floor) / l.gt[c].max(floor)) as f64).ln().abs()))
+        .sum();
+    LightComparison { normals, log_error: (sum / 18.0) as f32 }
+}
+
 /// Per-channel median of gt/pred over the masked pixels of every view (the TensoIR albedo
 /// scale; 1 where there is nothing to measure).
 pub fn median_scale(pairs: &[(Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<f32>)]) -> [f32; 3] {
@@ -522,15 +569,25 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             if let Some(g) = &gt_env {
                 write_image(&out_dir.join("envmap_gt.png"), &g.to_display_image(exposure))?;
             }
-            let (pm, protocol) = eval_pbr(scene, &views, &out_dir, bg)?;
+            let (pm, mut protocol) = eval_pbr(scene, &views, &out_dir, bg)?;
+            let scale: [f32; 3] = serde_json::from_value(protocol["albedo_scale"].clone()).unwrap_or([1.0; 3]);
+            let light = gt_env.as_ref().map(|g| compare_light(&scene.env, g, scale));
+            if light.is_some() {
+                protocol["light"] = serde_json::json!(
+                    "per axis normal (world, z up): the radiance a white Lambertian surface facing it reflects under \
+                     the env alone, (1/pi) x the unoccluded cosine integral, ours divided by the albedo scale per \
+                     channel (albedo x s renders as env / s) against the dataset's training env; \
+                     light_lambert_log_error = mean over the 6 normals and 3 channels of |ln(ours / GT)|, both floored \
+                     at 1e-3 x the GT's mean"
+                );
+            }
             let relit = if args.no_relight || dataset.relit_found().is_empty() {
                 Vec::new()
             } else {
-                let scale: [f32; 3] = serde_json::from_value(protocol["albedo_scale"].clone()).unwrap_or([1.0; 3]);
                 let extent = crate::pbr_scene::scene_extent(&args.run);
                 eval_relight(scene, &dataset, &views, scale, args, &cfg, extent, &out_dir)?
             };
-            Some((pm, protocol, relit))
+            Some((pm, protocol, relit, light))
         }
         None => None,
     };
@@ -556,7 +613,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         "per_view": per_view,
     });
     let mut summary = summary;
-    if let Some((pm, protocol, relit)) = &pbr {
+    if let Some((pm, protocol, relit, light)) = &pbr {
         let pmean = |f: &dyn Fn(&PbrViewMetrics) -> Option<f32>| -> Option<f32> {
             let v: Vec<f32> = pm.iter().filter_map(f).collect();
             (!v.is_empty()).then(|| v.iter().sum::<f32>() / v.len() as f32)
@@ -570,6 +627,10 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         mean.insert("indirect_psnr".into(), serde_json::json!(pmean(&|m| m.indirect_psnr)));
         mean.insert("indirect_noise_ceiling_psnr".into(), serde_json::json!(pmean(&|m| m.indirect_noise_ceiling_psnr)));
         let mut extra = serde_json::Map::new();
+        if let Some(l) = light {
+            mean.insert("light_lambert_log_error".into(), serde_json::json!(l.log_error));
+            extra.insert("light".into(), serde_json::to_value(&l.normals)?);
+        }
         extra.insert("pbr_protocol".into(), protocol.clone());
         extra.insert("pbr_per_view".into(), serde_json::to_value(pm)?);
         if !relit.is_empty() {
@@ -612,6 +673,28 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
+
+    /// The same light scores 0; a light twice as bright scores ln 2 unless the albedo scale
+    /// says the albedo was halved; a light that moved from the sides to the top is seen.
+    #[test]
+    fn compare_light_measures_the_light_in_albedo_units() {
+        use crate::envmap::EnvMap;
+        let gt = EnvMap::constant(64, 32, [1.0, 0.5, 0.25]);
+        assert!(compare_light(&gt, &gt, [1.0; 3]).log_error < 1e-5);
+        let bright = EnvMap::constant(64, 32, [2.0, 1.0, 0.5]);
+        let c = compare_light(&bright, &gt, [1.0; 3]);
+        assert!((c.log_error - 2f32.ln()).abs() < 1e-4, "{}", c.log_error);
+        assert!(compare_light(&bright, &gt, [2.0; 3]).log_error < 1e-4);
+        // All the light at the zenith rows: +z sees more than the truth, the sides less.
+        let mut top = EnvMap::constant(64, 32, [0.0; 3]);
+        for t in &mut top.texels[..64 * 8] {
+            *t = [4.0, 2.0, 1.0];
+        }
+        let c = compare_light(&top, &gt, [1.0; 3]);
+        let at = |name: &str| c.normals.iter().find(|l| l.normal == name).unwrap().clone();
+        assert!(at("+z").ours[0] > at("+z").gt[0] && at("+x").ours[0] < at("+x").gt[0] && at("-z").ours[0] == 0.0);
+        assert!(c.log_error > 0.5);
+    }
 
     /// A flat grey pass plus i.i.d. Gaussian noise σ: the estimate is −10·log10 σ²; without
     /// noise it is far higher; unmasked pixels do not count.

@@ -7,6 +7,8 @@
 //! `ORACLE_ALBEDO=a` or `ORACLE_ROUGHNESS=r` replace the true albedo (grey a) or roughness by a
 //! constant: a resumed stage with the other material's learning rate at 0 then shows whether
 //! one material can be learned when the light and the other material are right.
+//! `ORACLE_ENV_CONSTANT=v` starts the checkpoint's light at the constant v instead of the true
+//! env (the true materials kept): where does the light go when only it is learned?
 
 #[path = "common/scene_readme.rs"]
 mod scene_readme;
@@ -69,7 +71,11 @@ fn main() -> anyhow::Result<()> {
         params.albedo_logits.clone_from(&s.albedo_logits);
         params.roughness_logits.clone_from(&s.roughness_logits);
         c.put_surfels("params", &params);
-        c.put("env.log", env.texels.iter().flatten().map(|v| v.max(1e-6).ln()).collect());
+        let env_constant: Option<f32> = match std::env::var("ORACLE_ENV_CONSTANT") {
+            Ok(v) => Some(v.parse().with_context(|| format!("ORACLE_ENV_CONSTANT={v}: not a number"))?),
+            Err(_) => None,
+        };
+        c.put("env.log", env.texels.iter().flatten().map(|v| env_constant.unwrap_or(*v).max(1e-6).ln()).collect());
         let zeros = vec![0.0f32; env.texels.len() * 3];
         c.put("env.adam_m", zeros.clone());
         c.put("env.adam_v", zeros);

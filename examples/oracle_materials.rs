@@ -8,7 +8,8 @@
 //! constant: a resumed stage with the other material's learning rate at 0 then shows whether
 //! one material can be learned when the light and the other material are right.
 //! `ORACLE_ENV_CONSTANT=v` starts the checkpoint's light at the constant v instead of the true
-//! env (the true materials kept): where does the light go when only it is learned?
+//! env (the true materials kept; `envmap.exr` stays the true env until the resumed stage
+//! writes its own): where does the light go when only it is learned?
 
 #[path = "common/scene_readme.rs"]
 mod scene_readme;
@@ -37,6 +38,14 @@ fn main() -> anyhow::Result<()> {
         }
     };
     let (albedo_override, roughness_override) = (constant("ORACLE_ALBEDO")?, constant("ORACLE_ROUGHNESS")?);
+    let env_constant: Option<f32> = match std::env::var("ORACLE_ENV_CONSTANT") {
+        Ok(v) => {
+            let x: f32 = v.parse().with_context(|| format!("ORACLE_ENV_CONSTANT={v}: not a number"))?;
+            anyhow::ensure!(x.is_finite() && x > 0.0, "ORACLE_ENV_CONSTANT={v}: must be a positive radiance");
+            Some(x)
+        }
+        Err(_) => None,
+    };
     let mut s = radiogs::eval::load_run_surfels(&run)?;
     let mut counts = vec![0usize; objects.len()];
     for i in 0..s.len() {
@@ -71,10 +80,6 @@ fn main() -> anyhow::Result<()> {
         params.albedo_logits.clone_from(&s.albedo_logits);
         params.roughness_logits.clone_from(&s.roughness_logits);
         c.put_surfels("params", &params);
-        let env_constant: Option<f32> = match std::env::var("ORACLE_ENV_CONSTANT") {
-            Ok(v) => Some(v.parse().with_context(|| format!("ORACLE_ENV_CONSTANT={v}: not a number"))?),
-            Err(_) => None,
-        };
         c.put("env.log", env.texels.iter().flatten().map(|v| env_constant.unwrap_or(*v).max(1e-6).ln()).collect());
         let zeros = vec![0.0f32; env.texels.len() * 3];
         c.put("env.adam_m", zeros.clone());

@@ -40,7 +40,8 @@ fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     anyhow::ensure!(args.len() >= 3, "usage: probe_light_solve RUN DATA [K]");
     let (run, data) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
-    let k: usize = args.get(3).map(|s| s.parse()).transpose()?.unwrap_or(6);
+    let k: usize = args.get(3).map(|s| s.parse()).transpose().context("K: not a whole number")?.unwrap_or(6);
+    anyhow::ensure!(k >= 1, "K must be at least 1");
     let smooth: f64 = std::env::var("SMOOTH").ok().map(|s| s.parse()).transpose()?.unwrap_or(1e-3);
     let scene = PbrScene::from_run(&run)?.context("no envmap")?;
     let ds = Dataset::open(&data)?;
@@ -174,6 +175,7 @@ fn main() -> anyhow::Result<()> {
         let _ = sc;
         rows.push(Row { l, l_sh, a, b, w: wt, owner });
     }
+    anyhow::ensure!(!rows.is_empty(), "{}: no surfel with opacity ≥ 0.3 is seen by a training camera", run.display());
     println!("{} surfels used", rows.len());
     if let Ok(path) = std::env::var("DUMP") {
         let mut out = String::from("i,x,y,z,nx,ny,nz,op,w,lr,lg,lb,sr,sg,sb,br,bg,bb,sky,owner,sdf\n");
@@ -226,6 +228,9 @@ fn main() -> anyhow::Result<()> {
             .map(|x| rows[x].w * centres_k.iter().map(|c| d2(feat[x], *c)).fold(f64::MAX, f64::min))
             .collect();
         let total: f64 = dist.iter().sum();
+        if total <= 0.0 {
+            break; // every remaining surfel sits on a centre already
+        }
         let mut t = rng.random_range(0.0..total);
         let mut pick = 0;
         for (x, d) in dist.iter().enumerate() {
@@ -237,6 +242,7 @@ fn main() -> anyhow::Result<()> {
         }
         centres_k.push(feat[pick]);
     }
+    let k = centres_k.len();
     let mut cluster = vec![0usize; rows.len()];
     for _ in 0..50 {
         for (i, f) in feat.iter().enumerate() {

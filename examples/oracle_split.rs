@@ -1,5 +1,7 @@
 //! Diagnostic: per test view, masked means of our PBR radiance split into direct and indirect
-//! parts beside the dataset's `indirect.exr` layers (direct.*, RGB = indirect).
+//! parts beside the dataset's `indirect.exr` layers (direct.*, RGB = indirect); then the same
+//! per material over all the views taken, with our specular part (the render with every albedo
+//! 0) — pixels are given the material whose true base colour is nearest to `albedo.png`'s.
 //!
 //!     cargo run --release --example oracle_split -- RUN DATA [VIEWS]
 
@@ -13,10 +15,10 @@ use std::path::PathBuf;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let (run, data) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
     if args.len() < 3 {
         anyhow::bail!("usage: oracle_split RUN DATA [VIEWS]");
     }
+    let (run, data) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
     let nviews: usize = match args.get(3) {
         Some(v) => v.parse().with_context(|| format!("VIEWS: {v} is not a count"))?,
         None => 4,
@@ -80,8 +82,16 @@ fn main() -> anyhow::Result<()> {
     }
     let ds = Dataset::open(&data)?;
     let mut tot = [[0.0f64; 3]; 7];
+    let mats = material_colours(&scene_readme::load(&data)?);
+    let mut per_material = vec![[[0.0f64; 3]; 7]; mats.len()];
+    let mut material_pixels = vec![0usize; mats.len()];
+    let albedo = scene.mats.albedo.clone();
     for view in ds.views(Split::Test).iter().take(nviews) {
+        scene.mats.albedo.iter_mut().for_each(|a| *a = [0.0; 3]);
+        let specular = scene.render(&view.camera, [0.0; 3]);
+        scene.mats.albedo.clone_from(&albedo);
         let img = scene.render(&view.camera, [0.0; 3]);
+        let gt_albedo = view.load_pass(radiogs::io::dataset::Pass::Albedo)?;
         let exr = view
             .pass_path(radiogs::io::dataset::Pass::Indirect)
             .with_context(|| format!("{}: no indirect.exr pass", view.camera.name))?;
@@ -96,6 +106,13 @@ fn main() -> anyhow::Result<()> {
                 continue;
             }
             n += 1.0;
+            let material = gt_albedo.as_ref().map(|a| {
+                let base: [f32; 3] = std::array::from_fn(|k| srgb_to_linear(a.data[p * 4 + k]));
+                nearest(&mats, base)
+            });
+            if let Some(m) = material {
+                material_pixels[m] += 1;
+            }
             for k in 0..3 {
                 let ours = srgb_to_linear(img.pbr[p][k]) as f64;
                 let ind = img.indirect[p][k] as f64;
@@ -111,6 +128,13 @@ fn main() -> anyhow::Result<()> {
                 ];
                 for (a, v) in acc.iter_mut().zip(vals) {
                     a[k] += v;
+                }
+                if let Some(m) = material {
+                    let sums = &mut per_material[m];
+                    for (a, v) in sums.iter_mut().zip(&vals[..6]) {
+                        a[k] += v;
+                    }
+                    sums[6][k] += srgb_to_linear(specular.pbr[p][k]) as f64;
                 }
             }
         }
@@ -168,7 +192,44 @@ fn main() -> anyhow::Result<()> {
     for (nm, t) in names.iter().zip(tot) {
         println!("{nm:14} {:.4} {:.4} {:.4}", t[0], t[1], t[2]);
     }
+    // Per material over every pixel of the views taken (no albedo.png: nothing to group by).
+    let names = ["total gt", "total ours", "direct gt", "direct ours", "indirect gt", "indirect ours", "specular ours"];
+    for (m, (name, base)) in mats.iter().enumerate() {
+        let count = material_pixels[m];
+        if count == 0 {
+            continue;
+        }
+        println!("{name}: base {base:.3?}, {count} pixels");
+        for (nm, t) in names.iter().zip(per_material[m]) {
+            let t = t.map(|x| x / count as f64);
+            println!("  {nm:14} {:.4} {:.4} {:.4}", t[0], t[1], t[2]);
+        }
+    }
     Ok(())
+}
+
+/// (name, linear base colour) of every material; a checker gives its two colours.
+fn material_colours(readme: &scene_readme::SceneReadme) -> Vec<(String, [f32; 3])> {
+    let mut names: Vec<&String> = readme.materials.keys().collect();
+    names.sort();
+    let f = |c: [f64; 3]| c.map(|x| x as f32);
+    let mut out = Vec::new();
+    for name in names {
+        match &readme.materials[name].base_color_linear {
+            scene_readme::BaseColor::Rgb(c) => out.push((name.clone(), f(*c))),
+            scene_readme::BaseColor::Checker { checker_object_space: k } => {
+                out.push((format!("{name}.1"), f(k.color1)));
+                out.push((format!("{name}.2"), f(k.color2)));
+            }
+        }
+    }
+    out
+}
+
+/// The material whose base colour is nearest to `c` (linear rgb).
+fn nearest(mats: &[(String, [f32; 3])], c: [f32; 3]) -> usize {
+    let d = |a: [f32; 3]| (0..3).map(|k| (a[k] - c[k]).powi(2)).sum::<f32>();
+    (0..mats.len()).min_by(|&a, &b| d(mats[a].1).total_cmp(&d(mats[b].1))).unwrap_or(0)
 }
 
 /// Replace the cache's traced visibility by exact ray casts against the dataset's objects.

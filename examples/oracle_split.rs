@@ -82,7 +82,14 @@ fn main() -> anyhow::Result<()> {
     }
     let ds = Dataset::open(&data)?;
     let mut tot = [[0.0f64; 3]; 7];
-    let mats = material_colours(&scene_readme::load(&data)?);
+    // The per-material table needs the object list; without it only the per-view split is printed.
+    let mats = match scene_readme::load(&data) {
+        Ok(readme) => material_colours(&readme),
+        Err(e) => {
+            println!("no per-material table: {e:#}");
+            Vec::new()
+        }
+    };
     let mut per_material = vec![[[0.0f64; 3]; 7]; mats.len()];
     let mut material_pixels = vec![0usize; mats.len()];
     let albedo = scene.mats.albedo.clone();
@@ -106,7 +113,7 @@ fn main() -> anyhow::Result<()> {
                 continue;
             }
             n += 1.0;
-            let material = gt_albedo.as_ref().map(|a| {
+            let material = gt_albedo.as_ref().filter(|_| !mats.is_empty()).map(|a| {
                 let base: [f32; 3] = std::array::from_fn(|k| srgb_to_linear(a.data[p * 4 + k]));
                 nearest(&mats, base)
             });

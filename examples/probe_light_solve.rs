@@ -19,6 +19,7 @@
 //! - `ITERS=n` (60), `SMOOTH=λ` (1e-3, the env's smoothness weight relative to the data).
 //! - `DUMP=file.csv`: one row per surfel (position, normal, opacity, weight, both radiances,
 //!   indirect term, sky term, nearest object and its signed distance).
+//! - `SAVE_LIGHT=file.exr`: the solved 16 × 8 light.
 //!
 //! Finding (BENCHMARKS.md, session 29): on cornell even the true clusters do not give the light
 //! back; the fit is flat along albedo × s, light ÷ s per direction and channel.
@@ -209,7 +210,7 @@ fn main() -> anyhow::Result<()> {
                 sdf
             );
         }
-        std::fs::write(path, out)?;
+        radiogs::io::atomic::write_atomic(std::path::Path::new(&path), out.as_bytes())?;
     }
     // k-means on log chromaticity.
     let feat: Vec<[f64; 2]> = rows
@@ -405,7 +406,9 @@ fn main() -> anyhow::Result<()> {
         println!("cluster {c} albedo {:.3?}", albedo[c]);
     }
     let ours = EnvMap { width: W, height: H, texels: env.iter().map(|t| t.map(|x| x as f32)).collect() };
-    ours.save(&run.join("light_solve.exr")).ok();
+    if let Ok(path) = std::env::var("SAVE_LIGHT") {
+        ours.save(std::path::Path::new(&path))?;
+    }
     let cmp = radiogs::eval::compare_light(&ours, &gt_env, [1.0; 3]);
     println!("light error {:.3}", cmp.log_error);
     for l in &cmp.normals {

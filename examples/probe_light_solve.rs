@@ -23,6 +23,8 @@
 //!
 //! Finding (BENCHMARKS.md, session 29): on cornell even the true clusters do not give the light
 //! back; the fit is flat along albedo × s, light ÷ s per direction and channel.
+#[path = "common/blend_weights.rs"]
+mod blend_weights;
 #[path = "common/scene_readme.rs"]
 mod scene_readme;
 
@@ -67,7 +69,7 @@ fn main() -> anyhow::Result<()> {
     // training pixels it is composited into, Σ_p w_ip GT_p / Σ_p w_ip, from the raster
     // backward with the pixel colours as the feature gradient.
     let pixel_obs: Option<Vec<[f64; 4]>> = if std::env::var("OBS").as_deref() == Ok("pixels") {
-        use radiogs::raster::{Features, Outputs, RasterSettings, RenderGrads};
+        use radiogs::raster::{Outputs, RasterSettings};
         let settings = RasterSettings {
             window: scene.window,
             filter_inv_square: scene.filter_inv_square,
@@ -75,42 +77,23 @@ fn main() -> anyhow::Result<()> {
             outputs: Outputs { colour: true, ..Outputs::none() },
             ..RasterSettings::default()
         };
-        let zeros = vec![0.0f32; s.len() * 4];
-        let mut acc = vec![[0.0f64; 4]; s.len()];
-        let mut v_surfels = s.zeros_like();
-        let mut v_features = vec![0.0f32; s.len() * 4];
+        let mut blend = blend_weights::BlendSums::new(s);
         for view in ds.views(Split::Train) {
             let img = view.load_image()?;
-            let feats = Features { data: &zeros, channels: 4 };
-            let (_, state) = radiogs::raster::forward::render(s, &view.camera, &settings, Some(feats));
-            let mut v = vec![0.0f32; img.pixel_count() * 4];
-            for p in 0..img.pixel_count() {
-                if img.data[p * 4 + 3] > 0.99 {
-                    for c in 0..3 {
-                        v[p * 4 + c] = radiogs::io::image::srgb_to_linear(img.data[p * 4 + c]);
+            blend.add_view(s, &view.camera, &settings, |_| {
+                let mut v = vec![0.0f32; img.pixel_count() * 4];
+                for p in 0..img.pixel_count() {
+                    if img.data[p * 4 + 3] > 0.99 {
+                        for c in 0..3 {
+                            v[p * 4 + c] = radiogs::io::image::srgb_to_linear(img.data[p * 4 + c]);
+                        }
+                        v[p * 4 + 3] = 1.0;
                     }
-                    v[p * 4 + 3] = 1.0;
                 }
-            }
-            let grads = RenderGrads { v_features: v, ..Default::default() };
-            v_surfels.fill_zero();
-            v_features.iter_mut().for_each(|x| *x = 0.0);
-            radiogs::raster::backward::render_backward(
-                s,
-                &view.camera,
-                &settings,
-                Some(feats),
-                &state,
-                &grads,
-                &mut v_surfels,
-                Some(&mut v_features),
-            );
-            for i in 0..s.len() {
-                for c in 0..4 {
-                    acc[i][c] += v_features[i * 4 + c] as f64;
-                }
-            }
+                Ok(v)
+            })?;
         }
+        let acc = blend.sums;
         Some(acc)
     } else {
         None

@@ -29,13 +29,7 @@ fn main() -> anyhow::Result<()> {
     let true_env = radiogs::envmap::EnvMap::load(&env_path)?;
     let start = cfg.ray_start(extent);
     let scene = PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed);
-    println!(
-        "{} surfels, {} samples, ray offset {:.4}, skip margin {:?} (scene units)",
-        scene.surfels.len(),
-        scene.cache.samples,
-        start.offset,
-        start.skip_margin
-    );
+    probe_run::print_cache(scene.surfels.len(), scene.cache.samples, start);
     let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
     let spheres: Vec<usize> =
         (0..readme.objects.len()).filter(|&k| k != floor && readme.objects[k].kind == "uv_sphere").collect();

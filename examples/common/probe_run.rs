@@ -29,3 +29,11 @@ pub fn from_args(name: &str) -> anyhow::Result<ProbeRun> {
     let surfels = radiogs::eval::load_run_surfels(&run)?;
     Ok(ProbeRun { run, data, cfg, extent, surfels })
 }
+
+/// Print the cache's size and where its rays start (the probes' first line).
+pub fn print_cache(surfels: usize, samples: usize, start: radiogs::shade::incident::RayStart) {
+    println!(
+        "{surfels} surfels, {samples} samples, ray offset {:.4}, skip margin {:?} (scene units)",
+        start.offset, start.skip_margin
+    );
+}

@@ -10,7 +10,7 @@
 //!   below 0.05).
 //!
 //! Rewrites `point_cloud.ply` and the `params` of `checkpoint.bin` / `checkpoint_inverse.bin`
-//! where present; copies `config.toml` and `envmap.exr`. `oracle_split` or `probe_leaks` on the
+//! where present; copies `config.toml` and `envmap.exr`. `oracle_split` or `probe_irradiance` on the
 //! copy, or an inverse stage resumed from it, then show what the normals change.
 //!
 //!     cargo run --release --example oracle_normals -- RUN OUT [R (scene units, default 0.04)]
@@ -29,6 +29,11 @@ fn main() -> anyhow::Result<()> {
     anyhow::ensure!(args.len() >= 3, "usage: oracle_normals RUN OUT [R]");
     let (run, out) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
     let radius: f32 = args.get(3).map(|v| v.parse()).transpose().context("R")?.unwrap_or(0.04);
+    let mode = match (std::env::var("DATA"), std::env::var("CONSENSUS")) {
+        (Ok(d), _) => Mode::Truth(scene_readme::load(std::path::Path::new(&d))?),
+        (_, Ok(d)) => Mode::Consensus(PathBuf::from(d)),
+        _ => Mode::Plane { radius },
+    };
     std::fs::create_dir_all(&out)?;
     for f in ["config.toml", "envmap.exr"] {
         if run.join(f).is_file() {
@@ -40,7 +45,7 @@ fn main() -> anyhow::Result<()> {
         let mut s = radiogs::io::ply::read_ply(&run.join("point_cloud.ply"))?;
         let f = radiogs::io::ply::read_ply_filter_inv_square(&run.join("point_cloud.ply"))?;
         // Oriented (one-sided) surfels: the PLY of a PBR stage.
-        adjust(&mut s, radius, cfg.window, f.unwrap_or(2.0), false)?;
+        adjust(&mut s, &mode, cfg.window, f.unwrap_or(2.0), false)?;
         radiogs::io::ply::write_ply_trained(&out.join("point_cloud.ply"), &s, f)?;
     }
     for name in ["checkpoint.bin", "checkpoint_inverse.bin"] {
@@ -52,37 +57,30 @@ fn main() -> anyhow::Result<()> {
         let mut s = c.get_surfels(&path, "params")?;
         // The nvs checkpoint renders as its stage did; the inverse one one-sided.
         let two_sided = name == "checkpoint.bin" && cfg.two_sided;
-        adjust(&mut s, radius, cfg.window, cfg.filter_inv_square, two_sided)?;
+        adjust(&mut s, &mode, cfg.window, cfg.filter_inv_square, two_sided)?;
         c.put_surfels("params", &s);
         c.save(&out.join(name))?;
     }
     Ok(())
 }
 
-/// `DATA=dir`: the oracle instead — every surfel within 3 cm of a true object gets that
-/// object's surface normal (sign kept).
-fn oracle_normal(p: [f32; 3]) -> Option<[f64; 3]> {
-    thread_local! {
-        static README: Option<scene_readme::SceneReadme> =
-            std::env::var("DATA").ok().and_then(|d| scene_readme::load(std::path::Path::new(&d)).ok());
+/// `DATA=dir`: the oracle instead — the surface normal of the true object nearest to p, when p
+/// lies within 3 cm of it.
+fn oracle_normal(readme: &scene_readme::SceneReadme, p: [f32; 3]) -> Option<[f64; 3]> {
+    let p = p.map(|x| x as f64);
+    let o = &readme.objects[scene_readme::nearest(&readme.objects, p)];
+    let d = o.sdf(p);
+    if d.abs() > 0.03 {
+        return None;
     }
-    README.with(|r| {
-        let r = r.as_ref()?;
-        let p = p.map(|x| x as f64);
-        let o = &r.objects[scene_readme::nearest(&r.objects, p)];
-        let d = o.sdf(p);
-        if d.abs() > 0.03 {
-            return None;
-        }
-        let e = 1e-5;
-        let g: [f64; 3] = std::array::from_fn(|a| {
-            let mut q = p;
-            q[a] += e;
-            (o.sdf(q) - d) / e
-        });
-        let l = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt().max(1e-12);
-        Some(g.map(|x| x / l))
-    })
+    let e = 1e-5;
+    let g: [f64; 3] = std::array::from_fn(|a| {
+        let mut q = p;
+        q[a] += e;
+        (o.sdf(q) - d) / e
+    });
+    let l = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt().max(1e-12);
+    Some(g.map(|x| x / l))
 }
 
 /// `CONSENSUS=dir` (a dataset): each surfel's normal becomes the blend-weighted mean of the
@@ -111,13 +109,19 @@ fn consensus(
         let img = view.load_image()?;
         let cam = &view.camera;
         blend.add_view(s, cam, &settings, |out| {
-            let depth: Vec<f32> =
-                out.depth.iter().zip(&out.alpha).map(|(d, a)| if *a > 0.5 { d / a } else { 0.0 }).collect();
-            let mut normals = vec![[0.0f32; 3]; depth.len()];
-            radiogs::loss::normal_consistency::depth_to_normal(cam, &depth, &mut normals);
+            // `depth` is already Σ w z / α.
+            let mut normals = vec![[0.0f32; 3]; out.depth.len()];
+            radiogs::loss::normal_consistency::depth_to_normal(cam, &out.depth, &mut normals);
+            let (w, h) = (cam.width as usize, cam.height as usize);
+            // A pixel and its four neighbours on the surface: the finite differences stay on it.
+            let covered = |p: usize| out.alpha[p] > 0.5 && img.data[p * 4 + 3] > 0.99;
             let mut v = vec![0.0f32; img.pixel_count() * 4];
             for p in 0..img.pixel_count() {
-                if img.data[p * 4 + 3] > 0.99 && out.alpha[p] > 0.5 && normals[p] != [0.0; 3] {
+                let (x, y) = (p % w, p / w);
+                if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                    continue;
+                }
+                if [p, p - 1, p + 1, p - w, p + w].into_iter().all(covered) && normals[p] != [0.0; 3] {
                     v[p * 4..p * 4 + 3].copy_from_slice(&normals[p]);
                     v[p * 4 + 3] = 1.0;
                 }
@@ -179,8 +183,30 @@ fn turned_to(r: [[f32; 3]; 3], target: [f64; 3]) -> Option<([f32; 4], f64)> {
     Some((quat_from_columns(cols), dot.acos().to_degrees()))
 }
 
+/// Every surfel turned to the true surface's normal where [`oracle_normal`] gives one.
+fn to_truth(s: &mut Surfels, readme: &scene_readme::SceneReadme) {
+    let (mut turned, mut turn_sum) = (0usize, 0.0f64);
+    for i in 0..s.len() {
+        let Some(mut target) = oracle_normal(readme, s.means[i]) else { continue };
+        let r = rotation_from_quat(s.quats[i]);
+        if r[2][0] as f64 * target[0] + r[2][1] as f64 * target[1] + r[2][2] as f64 * target[2] < 0.0 {
+            target = target.map(|x| -x);
+        }
+        if let Some((q, angle)) = turned_to(r, target) {
+            s.quats[i] = q;
+            turned += 1;
+            turn_sum += angle;
+        }
+    }
+    println!(
+        "{turned} of {} surfels turned to the true surface's normal (mean turn {:.1}°)",
+        s.len(),
+        turn_sum / turned.max(1) as f64
+    );
+}
+
+/// Every surfel with a flat neighbourhood turned to its PCA plane.
 fn flatten(s: &mut Surfels, radius: f32) {
-    let oracle = std::env::var("DATA").is_ok();
     let n = s.len();
     let cell = radius;
     let key = |p: [f32; 3]| p.map(|x| (x / cell).floor() as i64);
@@ -195,7 +221,6 @@ fn flatten(s: &mut Surfels, radius: f32) {
     for i in 0..n {
         let p = s.means[i];
         let c = key(p);
-        let oracle_target = if oracle { oracle_normal(p) } else { None };
         let mut w_sum = 0.0f64;
         let mut mean = [0.0f64; 3];
         let mut pts: Vec<([f64; 3], f64)> = Vec::new();
@@ -219,7 +244,7 @@ fn flatten(s: &mut Surfels, radius: f32) {
                 }
             }
         }
-        if !oracle && pts.len() < 8 {
+        if pts.len() < 8 {
             continue;
         }
         mean = mean.map(|m| m / w_sum.max(1e-12));
@@ -239,16 +264,10 @@ fn flatten(s: &mut Surfels, radius: f32) {
             o
         };
         // Flat: the smallest spread well below the middle one.
-        if !oracle && vals[order[0]] > flat_ratio() * vals[order[1]] {
+        if vals[order[0]] > flat_ratio() * vals[order[1]] {
             continue;
         }
         let mut target = [vecs[0][order[0]], vecs[1][order[0]], vecs[2][order[0]]];
-        if oracle {
-            match oracle_target {
-                Some(t) => target = t,
-                None => continue,
-            }
-        }
         let r = rotation_from_quat(s.quats[i]);
         let nrm = r[2].map(|x| x as f64);
         let dot = nrm[0] * target[0] + nrm[1] * target[1] + nrm[2] * target[2];
@@ -263,20 +282,25 @@ fn flatten(s: &mut Surfels, radius: f32) {
     }
     s.quats = new_quats;
     println!(
-        "{turned} of {n} surfels turned to {} (mean turn {:.1}°)",
-        if oracle { "the true surface's normal" } else { "their neighbourhood's plane" },
+        "{turned} of {n} surfels turned to their neighbourhood's plane (mean turn {:.1}°)",
         tilt_sum / turned.max(1) as f64
     );
 }
 
-fn adjust(s: &mut Surfels, radius: f32, window: usize, filter: f32, two_sided: bool) -> anyhow::Result<()> {
-    match std::env::var("CONSENSUS") {
-        Ok(d) => consensus(s, std::path::Path::new(&d), two_sided, window, filter),
-        Err(_) => {
-            flatten(s, radius);
-            Ok(())
-        }
+/// Where the normals are turned to.
+enum Mode {
+    Truth(scene_readme::SceneReadme),
+    Consensus(PathBuf),
+    Plane { radius: f32 },
+}
+
+fn adjust(s: &mut Surfels, mode: &Mode, window: usize, filter: f32, two_sided: bool) -> anyhow::Result<()> {
+    match mode {
+        Mode::Truth(readme) => to_truth(s, readme),
+        Mode::Consensus(data) => consensus(s, data, two_sided, window, filter)?,
+        Mode::Plane { radius } => flatten(s, *radius),
     }
+    Ok(())
 }
 
 /// Eigen-decomposition of a symmetric 3 × 3 matrix by Jacobi sweeps: (values, columns).

@@ -130,32 +130,14 @@ fn consensus(
         })?;
     }
     let acc = blend.sums;
-    let (mut turned, mut turn_sum) = (0usize, 0.0f64);
-    for i in 0..s.len() {
-        if acc[i][3] < min_weight {
-            continue;
-        }
-        let r = rotation_from_quat(s.quats[i]);
-        let nrm = r[2].map(|x| x as f64);
-        let l = (acc[i][0].powi(2) + acc[i][1].powi(2) + acc[i][2].powi(2)).sqrt();
-        if l < 1e-9 {
-            continue;
-        }
-        let mut target = [acc[i][0] / l, acc[i][1] / l, acc[i][2] / l];
-        if nrm[0] * target[0] + nrm[1] * target[1] + nrm[2] * target[2] < 0.0 {
-            target = target.map(|x| -x);
-        }
-        if let Some((q, angle)) = turned_to(r, target) {
-            s.quats[i] = q;
-            turned += 1;
-            turn_sum += angle;
-        }
-    }
-    println!(
-        "{turned} of {} surfels turned to their pixels' depth normal (mean turn {:.1}°)",
-        s.len(),
-        turn_sum / turned.max(1) as f64
-    );
+    let targets: Vec<Option<[f64; 3]>> = acc
+        .iter()
+        .map(|a| {
+            let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+            (a[3] >= min_weight && l > 1e-9).then(|| [a[0] / l, a[1] / l, a[2] / l])
+        })
+        .collect();
+    turn_all(s, &targets, "their pixels' depth normal");
     Ok(())
 }
 
@@ -185,9 +167,15 @@ fn turned_to(r: [[f32; 3]; 3], target: [f64; 3]) -> Option<([f32; 4], f64)> {
 
 /// Every surfel turned to the true surface's normal where [`oracle_normal`] gives one.
 fn to_truth(s: &mut Surfels, readme: &scene_readme::SceneReadme) {
+    let targets: Vec<Option<[f64; 3]>> = s.means.iter().map(|&p| oracle_normal(readme, p)).collect();
+    turn_all(s, &targets, "the true surface's normal");
+}
+
+/// Turn surfel i to `targets[i]` where it has one (on its normal's side), and report.
+fn turn_all(s: &mut Surfels, targets: &[Option<[f64; 3]>], what: &str) {
     let (mut turned, mut turn_sum) = (0usize, 0.0f64);
-    for i in 0..s.len() {
-        let Some(mut target) = oracle_normal(readme, s.means[i]) else { continue };
+    for (i, target) in targets.iter().enumerate() {
+        let Some(mut target) = *target else { continue };
         let r = rotation_from_quat(s.quats[i]);
         if r[2][0] as f64 * target[0] + r[2][1] as f64 * target[1] + r[2][2] as f64 * target[2] < 0.0 {
             target = target.map(|x| -x);
@@ -198,11 +186,7 @@ fn to_truth(s: &mut Surfels, readme: &scene_readme::SceneReadme) {
             turn_sum += angle;
         }
     }
-    println!(
-        "{turned} of {} surfels turned to the true surface's normal (mean turn {:.1}°)",
-        s.len(),
-        turn_sum / turned.max(1) as f64
-    );
+    println!("{turned} of {} surfels turned to {what} (mean turn {:.1}°)", s.len(), turn_sum / turned.max(1) as f64);
 }
 
 /// Every surfel with a flat neighbourhood turned to its PCA plane.
@@ -216,9 +200,8 @@ fn flatten(s: &mut Surfels, radius: f32) {
             grid.entry(key(s.means[i])).or_default().push(i);
         }
     }
-    let (mut turned, mut tilt_sum) = (0usize, 0.0f64);
-    let mut new_quats = s.quats.clone();
-    for i in 0..n {
+    let mut targets = vec![None; n];
+    for (i, target) in targets.iter_mut().enumerate() {
         let p = s.means[i];
         let c = key(p);
         let mut w_sum = 0.0f64;
@@ -267,24 +250,9 @@ fn flatten(s: &mut Surfels, radius: f32) {
         if vals[order[0]] > flat_ratio() * vals[order[1]] {
             continue;
         }
-        let mut target = [vecs[0][order[0]], vecs[1][order[0]], vecs[2][order[0]]];
-        let r = rotation_from_quat(s.quats[i]);
-        let nrm = r[2].map(|x| x as f64);
-        let dot = nrm[0] * target[0] + nrm[1] * target[1] + nrm[2] * target[2];
-        if dot < 0.0 {
-            target = target.map(|x| -x);
-        }
-        if let Some((q, angle)) = turned_to(r, target) {
-            new_quats[i] = q;
-            tilt_sum += angle;
-            turned += 1;
-        }
+        *target = Some([vecs[0][order[0]], vecs[1][order[0]], vecs[2][order[0]]]);
     }
-    s.quats = new_quats;
-    println!(
-        "{turned} of {n} surfels turned to their neighbourhood's plane (mean turn {:.1}°)",
-        tilt_sum / turned.max(1) as f64
-    );
+    turn_all(s, &targets, "their neighbourhood's plane");
 }
 
 /// Where the normals are turned to.

@@ -7,7 +7,7 @@
 //!    so leaks make the indirect light short and the direct light bright), and 1 − T where the
 //!    truth is free (false shadow); blocked rays also by distance to the true hit.
 //! 2. Direct irradiance (linear RGB, opacity-weighted mean) under the run's `envmap.exr` (else
-//!    the dataset's training env), from the shader's own estimate down to the truth, one change
+//!    the dataset's training env at the run's env size), from the shader's own estimate down to the truth, one change
 //!    at a time: ours (cached directions and transmittance, our normal, the env box-filtered as
 //!    the shader reads it) → the env point-sampled → exact visibility (dense directions about
 //!    our normal with the shader's 10° floor) → no floor → the true normal (the truth); with
@@ -72,7 +72,12 @@ fn main() -> anyhow::Result<()> {
     let readme = scene_readme::load(&data)?;
     let env_path = data.join("envmaps").join(format!("{}.exr", readme.environment.train_env));
     let run_env = run.join("envmap.exr");
-    let env = radiogs::envmap::EnvMap::load(if run_env.is_file() { &run_env } else { &env_path })?;
+    // Without a recovered light, the dataset's at the run's env size (as `oracle_materials`).
+    let env = if run_env.is_file() {
+        radiogs::envmap::EnvMap::load(&run_env)?
+    } else {
+        radiogs::envmap::EnvMap::load(&env_path)?.resample(2 * cfg.env_height, cfg.env_height)
+    };
     let shader_env = env.box_downsample(radiogs::train::inverse::sample_factor(&cfg));
     let start = cfg.ray_start(extent);
     let scene = PbrScene::new(surfels, env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed);

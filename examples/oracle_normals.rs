@@ -31,13 +31,15 @@ fn main() -> anyhow::Result<()> {
     let radius: f32 = args.get(3).map(|v| v.parse()).transpose().context("R")?.unwrap_or(0.04);
     let mode = match (std::env::var("DATA"), std::env::var("CONSENSUS")) {
         (Ok(d), _) => Mode::Truth(scene_readme::load(std::path::Path::new(&d))?),
-        (_, Ok(d)) => Mode::Consensus(PathBuf::from(d)),
-        _ => Mode::Plane { radius },
+        (_, Ok(d)) => Mode::Consensus { data: PathBuf::from(d), min_weight: env_number("MIN_WEIGHT", 1.0)? },
+        // `FLAT`: the largest smallest / middle eigenvalue ratio counted as flat.
+        _ => Mode::Plane { radius, flat_ratio: env_number("FLAT", 0.05)? },
     };
     std::fs::create_dir_all(&out)?;
     for f in ["config.toml", "envmap.exr"] {
         if run.join(f).is_file() {
-            std::fs::copy(run.join(f), out.join(f))?;
+            let bytes = std::fs::read(run.join(f)).with_context(|| format!("{}", run.join(f).display()))?;
+            radiogs::io::atomic::write_atomic(&out.join(f), &bytes)?;
         }
     }
     let cfg = radiogs::eval::load_run_config(&run)?;
@@ -89,13 +91,13 @@ fn oracle_normal(readme: &scene_readme::SceneReadme, p: [f32; 3]) -> Option<[f64
 fn consensus(
     s: &mut Surfels,
     data: &std::path::Path,
+    min_weight: f64,
     two_sided: bool,
     window: usize,
     filter: f32,
 ) -> anyhow::Result<()> {
     use radiogs::io::dataset::{Dataset, Split};
     use radiogs::raster::{Outputs, RasterSettings};
-    let min_weight: f64 = std::env::var("MIN_WEIGHT").ok().and_then(|v| v.parse().ok()).unwrap_or(1.0);
     let ds = Dataset::open(data)?;
     let settings = RasterSettings {
         window,
@@ -190,7 +192,7 @@ fn turn_all(s: &mut Surfels, targets: &[Option<[f64; 3]>], what: &str) {
 }
 
 /// Every surfel with a flat neighbourhood turned to its PCA plane.
-fn flatten(s: &mut Surfels, radius: f32) {
+fn flatten(s: &mut Surfels, radius: f32, flat_ratio: f64) {
     let n = s.len();
     let cell = radius;
     let key = |p: [f32; 3]| p.map(|x| (x / cell).floor() as i64);
@@ -247,7 +249,7 @@ fn flatten(s: &mut Surfels, radius: f32) {
             o
         };
         // Flat: the smallest spread well below the middle one.
-        if vals[order[0]] > flat_ratio() * vals[order[1]] {
+        if vals[order[0]] > flat_ratio * vals[order[1]] {
             continue;
         }
         *target = Some([vecs[0][order[0]], vecs[1][order[0]], vecs[2][order[0]]]);
@@ -258,15 +260,15 @@ fn flatten(s: &mut Surfels, radius: f32) {
 /// Where the normals are turned to.
 enum Mode {
     Truth(scene_readme::SceneReadme),
-    Consensus(PathBuf),
-    Plane { radius: f32 },
+    Consensus { data: PathBuf, min_weight: f64 },
+    Plane { radius: f32, flat_ratio: f64 },
 }
 
 fn adjust(s: &mut Surfels, mode: &Mode, window: usize, filter: f32, two_sided: bool) -> anyhow::Result<()> {
     match mode {
         Mode::Truth(readme) => to_truth(s, readme),
-        Mode::Consensus(data) => consensus(s, data, two_sided, window, filter)?,
-        Mode::Plane { radius } => flatten(s, *radius),
+        Mode::Consensus { data, min_weight } => consensus(s, data, *min_weight, two_sided, window, filter)?,
+        Mode::Plane { radius, flat_ratio } => flatten(s, *radius, *flat_ratio),
     }
     Ok(())
 }
@@ -332,7 +334,11 @@ fn quat_from_columns(cols: [[f64; 3]; 3]) -> [f32; 4] {
     q.map(|x| x as f32)
 }
 
-/// `FLAT=x`: the largest smallest/middle eigenvalue ratio counted as flat (default 0.05).
-fn flat_ratio() -> f64 {
-    std::env::var("FLAT").ok().and_then(|v| v.parse().ok()).unwrap_or(0.05)
+/// The number in environment variable `name`, or `default` when it is unset; anything else
+/// that does not parse is an error naming the variable.
+fn env_number(name: &str, default: f64) -> anyhow::Result<f64> {
+    match std::env::var(name) {
+        Ok(v) => v.parse().with_context(|| format!("{name}={v}: not a number")),
+        Err(_) => Ok(default),
+    }
 }

@@ -3,7 +3,8 @@
 //! README.json objects, and prints per object: its share of the image's normal MAE (DESIGN §5:
 //! mean over all pixels), the mean angle error on its pixels, the angle of the *mean* rendered
 //! normal against the mean true normal (a systematic tilt; small when the errors cancel) and
-//! the rendered depth's error against the true depth (mean, mean |·|; z-depth, scene units).
+//! the rendered depth's error against the true depth (mean, mean |·|, and the median depth's
+//! mean; z-depth, scene units). A run folder with only a checkpoint (a copy taken mid-run) works.
 //! Writes `RUN/probe_normals/<view>_error.png` (angle error, 0–30° as black–white) and
 //! `<view>_depth.png` (rendered − true depth: red in front of the truth, blue behind, full
 //! at 0.1 scene units).
@@ -27,6 +28,7 @@ struct ObjectSums {
     mean_true: [f64; 3],
     depth_err: f64,
     depth_abs: f64,
+    median_err: f64,
     /// Pixels more than 10° off.
     over10: usize,
 }
@@ -38,9 +40,10 @@ fn main() -> anyhow::Result<()> {
     let views = ds.views(Split::Test);
     let settings = RasterSettings {
         window: cfg.window,
+        filter_inv_square: cfg.filter_inv_square,
         two_sided: cfg.two_sided,
         background: [1.0; 3],
-        outputs: Outputs { colour: true, normal: true, depth: true, ..Outputs::none() },
+        outputs: Outputs { colour: true, normal: true, depth: true, median_depth: true, ..Outputs::none() },
         ..RasterSettings::default()
     };
     let out_dir = run.join("probe_normals");
@@ -107,6 +110,7 @@ fn main() -> anyhow::Result<()> {
                 depth_img.data[i * 4..i * 4 + 4].copy_from_slice(&rgba);
                 s.depth_err += dz;
                 s.depth_abs += dz.abs();
+                s.median_err += out.median_depth[i] as f64 - true_z;
             }
         }
         write_image(&out_dir.join(format!("{}_error.png", cam.name)), &err_img)?;
@@ -115,8 +119,8 @@ fn main() -> anyhow::Result<()> {
     let mae = all_angle / all_pixels as f64;
     println!("normal MAE over all pixels {mae:.2}° ({} views)", views.len());
     println!(
-        "{:<20} {:>8} {:>8} {:>10} {:>9} {:>10} {:>10} {:>7}",
-        "object", "pixels", "share°", "mean err°", "tilt°", "dz mean", "|dz| mean", ">10°"
+        "{:<20} {:>8} {:>8} {:>10} {:>9} {:>10} {:>10} {:>10} {:>7}",
+        "object", "pixels", "share°", "mean err°", "tilt°", "dz mean", "|dz| mean", "dz median", ">10°"
     );
     for (obj, s) in readme.objects.iter().zip(&sums) {
         if s.pixels == 0 {
@@ -128,7 +132,7 @@ fn main() -> anyhow::Result<()> {
             ((a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / (la * lb).max(1e-12)).clamp(-1.0, 1.0).acos().to_degrees()
         };
         println!(
-            "{:<20} {:>8} {:>8.2} {:>10.2} {:>9.2} {:>10.4} {:>10.4} {:>6.1}%",
+            "{:<20} {:>8} {:>8.2} {:>10.2} {:>9.2} {:>10.4} {:>10.4} {:>10.4} {:>6.1}%",
             obj.object,
             s.pixels,
             s.angle / all_pixels as f64,
@@ -136,6 +140,7 @@ fn main() -> anyhow::Result<()> {
             angle_between(s.mean_ours, s.mean_true),
             s.depth_err / np,
             s.depth_abs / np,
+            s.median_err / np,
             100.0 * s.over10 as f64 / np
         );
     }

@@ -190,6 +190,10 @@ pub struct TrainConfig {
     pub densify_every: u32,
     #[arg(long, default_value_t = 3000)]
     pub opacity_reset_every: u32,
+    /// An opacity reset lowers every opacity to at most this (2DGS/3DGS: 0.01; 1 = no reset,
+    /// keeping the schedule that starts the huge-surfel prune after the first interval).
+    #[arg(long, default_value_t = 0.01)]
+    pub opacity_reset_cap: f32,
     #[arg(long, default_value_t = 2e-4)]
     pub densify_grad_threshold: f32,
     /// Split large surfels on AbsGS's homodirectional gradient (per-pixel |∂L/∂μ₂D| summed)
@@ -425,6 +429,9 @@ impl TrainConfig {
         if !(0.0..=1.0).contains(&self.lambda_dssim) {
             return bad("lambda_dssim", format!("{} is not in [0, 1]", self.lambda_dssim));
         }
+        if !(self.opacity_reset_cap > 0.0 && self.opacity_reset_cap <= 1.0) {
+            return bad("opacity_reset_cap", format!("{} is not in (0, 1]", self.opacity_reset_cap));
+        }
         if !(0.0..=1.0).contains(&self.depth_ratio) {
             return bad("depth_ratio", format!("{} is not in [0, 1]", self.depth_ratio));
         }
@@ -574,6 +581,13 @@ mod tests {
         );
         let err = TrainConfig { depth_ratio: 1.5, ..TrainConfig::default() }.validate().unwrap_err().to_string();
         assert!(err.contains("depth_ratio"), "{err}");
+        // A cap of 0 would reset opacity logits to −∞.
+        for bad in [0.0, -0.1, 1.5, f32::NAN] {
+            let err =
+                TrainConfig { opacity_reset_cap: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+            assert!(err.contains("opacity_reset_cap"), "{err}");
+        }
+        assert!(TrainConfig { opacity_reset_cap: 1.0, ..TrainConfig::default() }.validate().is_ok());
         for bad in [0, MAX_DOWNSCALE + 1, 800] {
             let err = TrainConfig { resolution: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
             assert!(err.contains("resolution") && err.contains("not a width"), "{err}");

@@ -695,8 +695,8 @@ pub fn run_stage(
                     );
                 }
             }
-            if it % reset_every == 0 {
-                densify::reset_opacity(&mut state.surfels, &mut state.adam, 0.01);
+            if it % reset_every == 0 && cfg.opacity_reset_cap < 1.0 {
+                densify::reset_opacity(&mut state.surfels, &mut state.adam, cfg.opacity_reset_cap);
             }
         }
         // The entropy regulariser drives most interior surfels to opacity ≈ 0 after the last

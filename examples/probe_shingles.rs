@@ -54,8 +54,8 @@ fn main() -> anyhow::Result<()> {
         let covered = |x: usize, y: usize| gt.data[(y * w + x) * 4 + 3] >= 0.5 && out.alpha[y * w + x] > 0.5;
         let planar = |x: usize, y: usize, cx: usize, cy: usize| covered(x, y) && angle(gt_n(x, y), gt_n(cx, cy)) < 1.0;
         let smax = *STRIDES.last().unwrap();
-        for y in smax..h - smax {
-            for x in smax..w - smax {
+        for y in smax..h.saturating_sub(smax) {
+            for x in smax..w.saturating_sub(smax) {
                 let i = y * w + x;
                 if !(covered(x, y)
                     && planar(x - smax, y, x, y)

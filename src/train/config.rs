@@ -190,9 +190,14 @@ pub struct TrainConfig {
     pub densify_every: u32,
     #[arg(long, default_value_t = 3000)]
     pub opacity_reset_every: u32,
-    /// An opacity reset lowers every opacity to at most this (2DGS/3DGS: 0.01; 1 = no reset,
-    /// keeping the schedule that starts the huge-surfel prune after the first interval).
-    #[arg(long, default_value_t = 0.01)]
+    /// An opacity reset lowers every opacity to at most this (1 = no reset, keeping the
+    /// schedule that starts the huge-surfel prune after the first interval). 2DGS/3DGS use
+    /// 0.01; after such a reset the faint surfels in front of a textureless wall regain
+    /// opacity first and cornell's back wall ends 6 cm in front of the truth. 0.2: nvs normal
+    /// MAE 7.72 → 6.84° on cornell, 3.28 → 3.27° on spheres (BENCHMARKS.md, sessions 31–32).
+    /// A run whose config predates the setting loads as 0.01 (a `--config` file without it: 0.2).
+    #[arg(long, default_value_t = 0.2)]
+    #[serde(default = "opacity_reset_cap_2dgs")]
     pub opacity_reset_cap: f32,
     #[arg(long, default_value_t = 2e-4)]
     pub densify_grad_threshold: f32,
@@ -348,6 +353,11 @@ pub struct TrainConfig {
     pub log_every: u32,
 }
 
+/// 2DGS's opacity reset value: what every run before `opacity_reset_cap` used.
+fn opacity_reset_cap_2dgs() -> f32 {
+    0.01
+}
+
 impl Default for TrainConfig {
     fn default() -> Self {
         use clap::Parser;
@@ -386,7 +396,8 @@ impl TrainConfig {
     /// Merge: defaults < file < the flags the user typed (named in `explicit`).
     ///
     /// A key the file leaves out takes the built-in default, including the settings whose
-    /// serde default is the older value (`filter_inv_square`, `scale_position_lr`): those
+    /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
+    /// `opacity_reset_cap`): those
     /// older values are for reading a run folder saved before the setting existed
     /// (`eval::load_run_config`), not for a hand-written settings file.
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
@@ -625,6 +636,8 @@ mod tests {
         assert!(merged.scale_position_lr && d.scale_position_lr);
         assert_eq!(merged.filter_inv_square, d.filter_inv_square);
         assert_ne!(d.filter_inv_square, crate::raster::filter_inv_square_2dgs());
+        assert_eq!(merged.opacity_reset_cap, d.opacity_reset_cap);
+        assert_ne!(d.opacity_reset_cap, opacity_reset_cap_2dgs());
         assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
             toml::to_string(&merged).unwrap()
@@ -636,11 +649,14 @@ mod tests {
         let saved = crate::eval::load_run_config(&run).unwrap();
         assert!(!saved.scale_position_lr);
         assert_eq!(saved.filter_inv_square, crate::raster::filter_inv_square_2dgs());
+        assert_eq!(saved.opacity_reset_cap, opacity_reset_cap_2dgs());
 
-        std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\n").unwrap();
+        std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")
+            .unwrap();
         let named = TrainConfig::resolve(&cli, &[]).unwrap();
         assert!(!named.scale_position_lr);
         assert_eq!(named.filter_inv_square, 2.0);
+        assert_eq!(named.opacity_reset_cap, 0.01);
         std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -18,7 +18,8 @@
 //! New surfels get zero Adam moments (2DGS `cat_tensors_to_optimizer` appends zeros) and zero
 //! max radius; surviving surfels keep their moments; the gradient accumulators are reset to zero
 //! afterwards (2DGS `densification_postfix`). Final order: kept originals, clones, split samples.
-//! `reset_opacity`: opacity ← min(opacity, 0.01) in logit space, opacity moments zeroed.
+//! `reset_opacity`: opacity ← min(opacity, cap) in logit space (2DGS: cap 0.01; radiogs's default
+//! `opacity_reset_cap` 0.2), opacity moments zeroed.
 //! Serial over surfels (it runs every 100 iterations); random numbers from the caller's Pcg64
 //! in a fixed order, so a seed gives one result.
 

@@ -194,7 +194,8 @@ pub struct TrainConfig {
     /// schedule that starts the huge-surfel prune after the first interval). 2DGS/3DGS use
     /// 0.01; after such a reset the faint surfels in front of a textureless wall regain
     /// opacity first and cornell's back wall ends 6 cm in front of the truth. 0.2: nvs normal
-    /// MAE 7.72 → 6.84° on cornell, 3.28 → 3.27° on spheres (BENCHMARKS.md, sessions 31–32).
+    /// MAE 7.72 → 6.84° on cornell, 3.28 → 3.27° on spheres, with `sh_up_every` 5000
+    /// (BENCHMARKS.md, sessions 31–32).
     /// A run whose config predates the setting loads as 0.01 (a `--config` file without it: 0.2).
     #[arg(long, default_value_t = 0.2)]
     #[serde(default = "opacity_reset_cap_2dgs")]
@@ -215,9 +216,12 @@ pub struct TrainConfig {
     /// Raise the active SH degree every this many iterations (of 30k), up to 3. 2DGS's 1000,
     /// scaled into our short runs, reaches degree 3 at a tenth of the run, before the geometry
     /// settles; view-dependent colour then absorbs the shading parallax that tells a white
-    /// corner's crease from a cove. 5000: degree 3 at half the run (cornell normal MAE 10.05° →
-    /// 8.86°, seed 1 9.57° → 8.70°, PSNR +0.1–0.3 dB; spheres 36.67 → 36.52 dB, 3.94° → 3.87°).
-    #[arg(long, default_value_t = 5000)]
+    /// corner's crease from a cove. 5000 (sessions 16–31: degree 3 at half the run) gave
+    /// cornell 10.05 → 8.86°; 10000 (degree 1 at a third, 2 at two thirds, 3 only for the last
+    /// iteration), with the 0.2 opacity-reset cap: cornell nvs normal MAE 6.84 → 5.91° (seed 1
+    /// 5.88°) at −0.15 dB, glossy spheres 3.27 → 3.41° at −1.0 dB (BENCHMARKS.md, session 32).
+    /// 5000 is the better choice for the views of glossy objects.
+    #[arg(long, default_value_t = 10000)]
     pub sh_up_every: u32,
 
     // Stage `init` (RadioGS stage 1, DESIGN §1): the nvs losses and schedule plus these.

@@ -401,9 +401,8 @@ impl TrainConfig {
     ///
     /// A key the file leaves out takes the built-in default, including the settings whose
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
-    /// `opacity_reset_cap`): those
-    /// older values are for reading a run folder saved before the setting existed
-    /// (`eval::load_run_config`), not for a hand-written settings file.
+    /// `opacity_reset_cap`): those older values are for reading a run folder saved before the
+    /// setting existed (`eval::load_run_config`), not for a hand-written settings file.
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
         let Some(path) = &cli.config else { return Ok(cli.clone()) };
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;

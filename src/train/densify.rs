@@ -433,6 +433,14 @@ mod tests {
         }
         assert!(adam.m.opacity_logits.iter().chain(&adam.v.opacity_logits).all(|&v| v == 0.0));
         assert_eq!(adam.m.roughness_logits[3], 1003.0);
+
+        // radiogs's default cap 0.2: opacities above it come down to it, those below stay.
+        let (mut s, mut adam, _) = setup();
+        reset_opacity(&mut s, &mut adam, 0.2);
+        for i in 0..s.len() {
+            let want = if i == 6 { 0.01 } else { 0.2 };
+            assert!((s.opacity(i) - want).abs() < 1e-5, "row {i}: {}", s.opacity(i));
+        }
     }
 }
 

@@ -271,6 +271,17 @@ pub struct TrainConfig {
     pub lambda_smooth_roughness: f32,
     #[arg(long, default_value_t = 0.01)]
     pub lambda_smooth_normal: f32,
+    /// Non-local albedo prior [0.1; not in the published method, 0 = off]: surfels whose SH
+    /// colour has the same chromaticity are pulled towards one albedo (src/train/albedo_chroma.rs;
+    /// cornell: albedo +1.1 dB, relighting +1.1–1.25 dB on two seeds, spheres unchanged;
+    /// BENCHMARKS.md session 33). A run whose config predates the setting loads as 0.
+    #[arg(long, default_value_t = 0.1)]
+    #[serde(default = "albedo_chroma_off")]
+    pub lambda_albedo_chroma: f32,
+    /// Cell width of that prior on the (r, g) chromaticity plane [0.015]; a surfel's target
+    /// averages its cell and the 8 around it.
+    #[arg(long, default_value_t = 0.015)]
+    pub albedo_chroma_bin: f32,
     /// White-light prior [0.01] and env total variation [0.02].
     #[arg(long, default_value_t = 0.01)]
     pub lambda_white_light: f32,
@@ -355,6 +366,11 @@ pub struct TrainConfig {
     /// Log metrics every this many iterations.
     #[arg(long, default_value_t = 50)]
     pub log_every: u32,
+}
+
+/// What every run before `lambda_albedo_chroma` used: no such prior.
+fn albedo_chroma_off() -> f32 {
+    0.0
 }
 
 /// 2DGS's opacity reset value: what every run before `opacity_reset_cap` used.
@@ -482,6 +498,7 @@ impl TrainConfig {
             ("lambda_smooth_albedo", self.lambda_smooth_albedo),
             ("lambda_smooth_roughness", self.lambda_smooth_roughness),
             ("lambda_smooth_normal", self.lambda_smooth_normal),
+            ("lambda_albedo_chroma", self.lambda_albedo_chroma),
             ("lambda_white_light", self.lambda_white_light),
             ("lambda_env_tv", self.lambda_env_tv),
             ("geometry_lr_scale", self.geometry_lr_scale),
@@ -494,6 +511,9 @@ impl TrainConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(key, format!("{v} must be finite and ≥ 0"));
             }
+        }
+        if !(self.albedo_chroma_bin.is_finite() && self.albedo_chroma_bin >= 0.002 && self.albedo_chroma_bin <= 0.5) {
+            return bad("albedo_chroma_bin", format!("{} is not in [0.002, 0.5]", self.albedo_chroma_bin));
         }
         if !(1..=256).contains(&self.pbr_samples) {
             return bad("pbr_samples", format!("{} is not in 1..=256", self.pbr_samples));
@@ -641,6 +661,8 @@ mod tests {
         assert_ne!(d.filter_inv_square, crate::raster::filter_inv_square_2dgs());
         assert_eq!(merged.opacity_reset_cap, d.opacity_reset_cap);
         assert_ne!(d.opacity_reset_cap, opacity_reset_cap_2dgs());
+        assert_eq!(merged.lambda_albedo_chroma, d.lambda_albedo_chroma);
+        assert_ne!(d.lambda_albedo_chroma, albedo_chroma_off());
         assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
             toml::to_string(&merged).unwrap()
@@ -653,6 +675,7 @@ mod tests {
         assert!(!saved.scale_position_lr);
         assert_eq!(saved.filter_inv_square, crate::raster::filter_inv_square_2dgs());
         assert_eq!(saved.opacity_reset_cap, opacity_reset_cap_2dgs());
+        assert_eq!(saved.lambda_albedo_chroma, albedo_chroma_off());
 
         std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")
             .unwrap();

@@ -20,6 +20,7 @@
 //! No densification. Writes `checkpoint_inverse.bin`, `point_cloud.ply` (with material
 //! fields) and `envmap.exr`.
 
+use super::albedo_chroma::AlbedoChroma;
 use super::consistency::{RcLosses, RcScratch, RcSettings, radiometric_consistency};
 use super::light::LearnedLight;
 use super::material::{MaterialGrads, MaterialView, orient_surfels, view_dir, view_dir_backward};
@@ -361,6 +362,7 @@ pub struct InverseLosses {
     pub mask: f32,
     pub normal: f32,
     pub smooth: f32,
+    pub albedo_chroma: f32,
     pub env_prior: f32,
     pub rc: RcLosses,
     pub psnr_pbr: f32,
@@ -403,6 +405,7 @@ struct Scratch {
     v_env_log: Vec<f32>,
     rc: RcScratch,
     ss_grads: Option<SplitSumGrads>,
+    albedo_chroma: AlbedoChroma,
     /// The forward's per-pixel hits, replayed by the backward (buffers reused).
     recorder: raster::HitRecorder,
 }
@@ -589,6 +592,16 @@ fn iterate(
             sc.mgrads.v_albedo[i][c] += f[3 + c];
         }
         sc.mgrads.v_roughness[i] += f[6];
+    }
+    if cfg.lambda_albedo_chroma > 0.0 {
+        l.albedo_chroma = sc.albedo_chroma.loss(
+            s,
+            &sc.mats.albedo,
+            cfg.lambda_albedo_chroma,
+            cfg.albedo_chroma_bin,
+            &mut sc.mgrads.v_albedo,
+        );
+        l.total += l.albedo_chroma;
     }
     // The env gradient of the (box-filtered) sampled env, kept small until the end.
     sc.v_env_small.clear();
@@ -814,7 +827,7 @@ pub fn run_until(
             let line = serde_json::json!({
                 "stage": "inverse", "iteration": it, "loss": last.total, "psnr_pbr": last.psnr_pbr,
                 "psnr_sh": last.psnr_sh, "pbr_l1": last.pbr_l1, "sh_l1": last.sh_l1, "rc_camera": last.rc.camera,
-                "rc_random": last.rc.random, "mask": last.mask, "normal": last.normal, "smooth": last.smooth,
+                "rc_random": last.rc.random, "mask": last.mask, "normal": last.normal, "smooth": last.smooth, "albedo_chroma": last.albedo_chroma,
                 "env_prior": last.env_prior, "seconds": started.elapsed().as_secs_f64(),
             });
             writeln!(metrics, "{line}").context("writing metrics_inverse.jsonl")?;

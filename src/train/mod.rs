@@ -1,4 +1,5 @@
 //! Training: configuration, stages, density control, checkpoints.
+pub mod albedo_chroma;
 pub mod checkpoint;
 pub mod config;
 pub mod consistency;

@@ -1,0 +1,257 @@
+//! Non-local albedo prior: surfels whose observed colour has the same chromaticity are pulled
+//! towards one albedo (the Retinex assumption that shading changes brightness, not hue).
+//!
+//! Why: the image losses alone cannot tell a brighter albedo from more light on one face
+//! (cornell's recovered light sends sideways light to the zenith and the walls' albedo takes
+//! the difference, BENCHMARKS.md sessions 27–28). Tying the same-coloured faces that look in
+//! different directions (floor and back wall, the block's sides and top) leaves the light to
+//! explain their brightness difference. It did not move cornell's light (its error 0.447 →
+//! 0.438), but it ties each material's faces: albedo +1.1 dB and relighting +1.1–1.25 dB there
+//! on two seeds, spheres unchanged (BENCHMARKS.md, session 33). Not in the published method
+//! (`--lambda-albedo-chroma`, default 0.1; 0 = off).
+//!
+//! Each surfel's chromaticity is that of its SH colour's DC part, linearised: χ = c / Σc.
+//! Surfels are binned on (χ_r, χ_g) with cells `bin` wide; a surfel's target is the mean
+//! albedo over its cell and the 8 around it, weighted by opacity × disk area (so the visible
+//! layer sets it). Loss = λ · Σ_i w_i |a_i − ā(i)|₁ / Σ_i w_i over surfels with opacity ≥ 0.3
+//! and a colour bright enough to have a hue; ā is differentiated too. The loss scales with the
+//! albedo, so it leans slightly towards a darker albedo under a brighter light; the same prior
+//! on ln a (scale-free) measured worse on cornell (BENCHMARKS.md, session 33).
+
+use crate::io::image::srgb_to_linear;
+use crate::sh::SH_C0;
+use crate::surfels::Surfels;
+
+/// Surfels below this opacity carry colours nothing constrains (BENCHMARKS.md session 29).
+const MIN_OPACITY: f32 = 0.3;
+/// Below this linear brightness (sum of channels) the chromaticity is noise.
+const MIN_BRIGHTNESS: f32 = 0.03;
+
+/// Buffers of the prior, kept between iterations.
+#[derive(Default)]
+pub struct AlbedoChroma {
+    /// Per surfel: its cell, or u32::MAX when it does not take part.
+    cell: Vec<u32>,
+    weight: Vec<f32>,
+    /// Per cell: Σ w·a (3) and Σ w, then the same summed over the 3 × 3 neighbourhood.
+    sums: Vec<[f64; 4]>,
+    neighbourhood: Vec<[f64; 4]>,
+    /// Per cell: Σ w_i·sign(a_i − ā) / W over its surfels, per channel (for ā's gradient).
+    pull: Vec<[f64; 3]>,
+}
+
+impl AlbedoChroma {
+    /// The loss (λ included) and its gradient added to `v_albedo` (per surfel, albedo units).
+    pub fn loss(
+        &mut self,
+        surfels: &Surfels,
+        albedo: &[[f32; 3]],
+        lambda: f32,
+        bin: f32,
+        v_albedo: &mut [[f32; 3]],
+    ) -> f32 {
+        let n = surfels.len();
+        let cells = (1.0 / bin).ceil() as usize + 1;
+        self.cell.clear();
+        self.weight.clear();
+        self.sums.clear();
+        self.sums.resize(cells * cells, [0.0; 4]);
+        let mut total_weight = 0.0f64;
+        for i in 0..n {
+            let dc = surfels.sh[i][0];
+            let c = dc.map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
+            let sum = c[0] + c[1] + c[2];
+            let opacity = surfels.opacity(i);
+            if opacity < MIN_OPACITY || sum < MIN_BRIGHTNESS {
+                self.cell.push(u32::MAX);
+                self.weight.push(0.0);
+                continue;
+            }
+            let s = surfels.scale(i);
+            let w = opacity * s[0] * s[1];
+            let (x, y) = ((c[0] / sum / bin) as usize, (c[1] / sum / bin) as usize);
+            let k = x.min(cells - 1) * cells + y.min(cells - 1);
+            self.cell.push(k as u32);
+            self.weight.push(w);
+            let cell = &mut self.sums[k];
+            for ch in 0..3 {
+                cell[ch] += (w * albedo[i][ch]) as f64;
+            }
+            cell[3] += w as f64;
+            total_weight += w as f64;
+        }
+        if total_weight <= 0.0 {
+            return 0.0;
+        }
+        // Box-filter the cells so that neighbours across a cell border share a target.
+        self.neighbourhood.clear();
+        self.neighbourhood.resize(cells * cells, [0.0; 4]);
+        for x in 0..cells {
+            for y in 0..cells {
+                let mut acc = [0.0f64; 4];
+                for nx in x.saturating_sub(1)..(x + 2).min(cells) {
+                    for ny in y.saturating_sub(1)..(y + 2).min(cells) {
+                        let s = &self.sums[nx * cells + ny];
+                        for k in 0..4 {
+                            acc[k] += s[k];
+                        }
+                    }
+                }
+                self.neighbourhood[x * cells + y] = acc;
+            }
+        }
+        let scale = lambda as f64 / total_weight;
+        let mut loss = 0.0f64;
+        self.pull.clear();
+        self.pull.resize(cells * cells, [0.0; 3]);
+        for i in 0..n {
+            let k = self.cell[i];
+            if k == u32::MAX {
+                continue;
+            }
+            let nb = &self.neighbourhood[k as usize];
+            let w = self.weight[i] as f64;
+            for ch in 0..3 {
+                let d = albedo[i][ch] as f64 - nb[ch] / nb[3];
+                loss += w * d.abs();
+                let sign = if d > 0.0 {
+                    1.0
+                } else if d < 0.0 {
+                    -1.0
+                } else {
+                    0.0
+                };
+                v_albedo[i][ch] += (scale * w * sign) as f32;
+                self.pull[k as usize][ch] += w * sign / nb[3];
+            }
+        }
+        // Through the targets: ā of cell k moves with every a_j in k's neighbourhood by w_j / W_k,
+        // so surfel j receives −w_j Σ over the cells k around its own of pull_k.
+        for i in 0..n {
+            let k = self.cell[i];
+            if k == u32::MAX {
+                continue;
+            }
+            let (x, y) = (k as usize / cells, k as usize % cells);
+            let mut acc = [0.0f64; 3];
+            for nx in x.saturating_sub(1)..(x + 2).min(cells) {
+                for ny in y.saturating_sub(1)..(y + 2).min(cells) {
+                    let p = &self.pull[nx * cells + ny];
+                    for ch in 0..3 {
+                        acc[ch] += p[ch];
+                    }
+                }
+            }
+            let w = self.weight[i] as f64;
+            for ch in 0..3 {
+                v_albedo[i][ch] -= (scale * w * acc[ch]) as f32;
+            }
+        }
+        (scale * loss) as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sh::rgb_to_dc;
+    use rand::{RngExt, SeedableRng};
+
+    /// Surfels in two colour families (a reddish one spread over several cells, a white one)
+    /// with random opacities, scales and albedos.
+    fn scene(seed: u64) -> (Surfels, Vec<[f32; 3]>) {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let mut s = Surfels::random_in_box(24, [0.0; 3], [1.0; 3], seed);
+        let mut albedo = Vec::new();
+        for i in 0..s.len() {
+            let base = if i % 2 == 0 { [0.8, 0.3, 0.3] } else { [0.7, 0.7, 0.7] };
+            let c = base.map(|x: f32| x + rng.random_range(-0.05..0.05));
+            s.sh[i][0] = c.map(rgb_to_dc);
+            s.opacity_logits[i] = rng.random_range(-0.5..3.0);
+            s.log_scales[i] = [rng.random_range(-3.0..-1.0), rng.random_range(-3.0..-1.0)];
+            albedo.push([0; 3].map(|_| rng.random_range(0.2..0.8)));
+        }
+        (s, albedo)
+    }
+
+    #[test]
+    fn gradient_matches_finite_differences() {
+        // f64 central differences of the f32 loss; components within eps of a kink of |·|
+        // (the one-sided slopes disagree) are skipped, and there must be few of them.
+        let (mut checked, mut kinks) = (0, 0);
+        for seed in 0..4 {
+            let (s, albedo) = scene(seed);
+            let mut prior = AlbedoChroma::default();
+            let mut grad = vec![[0.0f32; 3]; s.len()];
+            prior.loss(&s, &albedo, 0.7, 0.02, &mut grad);
+            let eps = 1e-3;
+            for i in 0..s.len() {
+                for ch in 0..3 {
+                    let f = |delta: f32| {
+                        let mut a = albedo.clone();
+                        a[i][ch] += delta;
+                        let mut g = vec![[0.0f32; 3]; s.len()];
+                        AlbedoChroma::default().loss(&s, &a, 0.7, 0.02, &mut g) as f64
+                    };
+                    let (lo, mid, hi) = (f(-eps), f(0.0), f(eps));
+                    let (left, right) = ((mid - lo) / eps as f64, (hi - mid) / eps as f64);
+                    if (left - right).abs() > 1e-3 {
+                        kinks += 1;
+                        continue;
+                    }
+                    checked += 1;
+                    let fd = (hi - lo) / (2.0 * eps as f64);
+                    let an = grad[i][ch] as f64;
+                    assert!(
+                        (fd - an).abs() < 5e-4 + 1e-2 * an.abs(),
+                        "seed {seed} surfel {i} ch {ch}: fd {fd} analytic {an}"
+                    );
+                }
+            }
+        }
+        assert!(kinks * 10 < checked, "{kinks} kinks against {checked} checked");
+    }
+
+    #[test]
+    fn excluded_surfels_get_no_gradient_and_equal_albedos_cost_nothing() {
+        let (mut s, albedo) = scene(7);
+        s.opacity_logits[3] = -3.0; // opacity 0.05: out
+        s.sh[5][0] = [0.0; 3].map(rgb_to_dc); // black: no hue
+        let mut grad = vec![[0.0f32; 3]; s.len()];
+        let loss = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, &mut grad);
+        assert!(loss > 0.0);
+        assert_eq!(grad[3], [0.0; 3]);
+        assert_eq!(grad[5], [0.0; 3]);
+        // One albedo for every surfel: every target equals it.
+        let same = vec![[0.4, 0.2, 0.6]; s.len()];
+        let mut grad = vec![[0.0f32; 3]; s.len()];
+        let loss = AlbedoChroma::default().loss(&s, &same, 1.0, 0.02, &mut grad);
+        assert!(loss.abs() < 1e-6, "{loss}");
+    }
+
+    #[test]
+    fn the_loss_scales_with_the_albedo() {
+        let (s, albedo) = scene(3);
+        let half: Vec<[f32; 3]> = albedo.iter().map(|a| a.map(|x| 0.5 * x)).collect();
+        let mut g = vec![[0.0f32; 3]; s.len()];
+        let full = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, &mut g);
+        let halved = AlbedoChroma::default().loss(&s, &half, 1.0, 0.02, &mut g);
+        assert!(full > 0.01 && (0.5 * full - halved).abs() < 1e-5 * full, "{full} vs {halved}");
+    }
+
+    #[test]
+    fn different_hues_are_not_tied() {
+        // Two red surfels of different albedo pull on each other; the blue one is untouched.
+        let mut s = Surfels::random_in_box(3, [0.0; 3], [1.0; 3], 1);
+        s.sh[0][0] = [0.9, 0.1, 0.1].map(rgb_to_dc);
+        s.sh[1][0] = [0.1, 0.1, 0.9].map(rgb_to_dc);
+        s.sh[2][0] = [0.5, 0.06, 0.06].map(rgb_to_dc);
+        s.opacity_logits = vec![3.0; 3];
+        let albedo = vec![[0.8, 0.1, 0.1], [0.1, 0.1, 0.7], [0.4, 0.05, 0.05]];
+        let mut grad = vec![[0.0f32; 3]; 3];
+        let loss = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, &mut grad);
+        assert!(loss > 0.01, "{loss}");
+        assert!(grad[0][0] > 0.0 && grad[2][0] < 0.0, "{grad:?}");
+        assert!(grad[1].iter().all(|g| g.abs() < 1e-7), "{grad:?}");
+    }
+}

@@ -38,6 +38,8 @@ pub struct AlbedoChroma {
     neighbourhood: Vec<[f64; 4]>,
     /// Per cell: Σ w_i·sign(a_i − ā) / W over its surfels, per channel (for ā's gradient).
     pull: Vec<[f64; 3]>,
+    /// `pull` summed over each cell's 3 × 3 neighbourhood.
+    pull_around: Vec<[f64; 3]>,
 }
 
 impl AlbedoChroma {
@@ -84,22 +86,7 @@ impl AlbedoChroma {
             return 0.0;
         }
         // Box-filter the cells so that neighbours across a cell border share a target.
-        self.neighbourhood.clear();
-        self.neighbourhood.resize(cells * cells, [0.0; 4]);
-        for x in 0..cells {
-            for y in 0..cells {
-                let mut acc = [0.0f64; 4];
-                for nx in x.saturating_sub(1)..(x + 2).min(cells) {
-                    for ny in y.saturating_sub(1)..(y + 2).min(cells) {
-                        let s = &self.sums[nx * cells + ny];
-                        for k in 0..4 {
-                            acc[k] += s[k];
-                        }
-                    }
-                }
-                self.neighbourhood[x * cells + y] = acc;
-            }
-        }
+        box_filter(&self.sums, cells, &mut self.neighbourhood);
         let scale = lambda as f64 / total_weight;
         let mut loss = 0.0f64;
         self.pull.clear();
@@ -127,27 +114,36 @@ impl AlbedoChroma {
         }
         // Through the targets: ā of cell k moves with every a_j in k's neighbourhood by w_j / W_k,
         // so surfel j receives −w_j Σ over the cells k around its own of pull_k.
+        box_filter(&self.pull, cells, &mut self.pull_around);
         for i in 0..n {
             let k = self.cell[i];
             if k == u32::MAX {
                 continue;
             }
-            let (x, y) = (k as usize / cells, k as usize % cells);
-            let mut acc = [0.0f64; 3];
-            for nx in x.saturating_sub(1)..(x + 2).min(cells) {
-                for ny in y.saturating_sub(1)..(y + 2).min(cells) {
-                    let p = &self.pull[nx * cells + ny];
-                    for ch in 0..3 {
-                        acc[ch] += p[ch];
-                    }
-                }
-            }
-            let w = self.weight[i] as f64;
+            let (w, around) = (self.weight[i] as f64, &self.pull_around[k as usize]);
             for ch in 0..3 {
-                v_albedo[i][ch] -= (scale * w * acc[ch]) as f32;
+                v_albedo[i][ch] -= (scale * w * around[ch]) as f32;
             }
         }
         (scale * loss) as f32
+    }
+}
+
+/// Each cell of a `cells` × `cells` grid summed with its 8 neighbours (fewer at the border).
+fn box_filter<const N: usize>(grid: &[[f64; N]], cells: usize, out: &mut Vec<[f64; N]>) {
+    out.clear();
+    for x in 0..cells {
+        for y in 0..cells {
+            let mut acc = [0.0f64; N];
+            for nx in x.saturating_sub(1)..(x + 2).min(cells) {
+                for ny in y.saturating_sub(1)..(y + 2).min(cells) {
+                    for (a, v) in acc.iter_mut().zip(&grid[nx * cells + ny]) {
+                        *a += v;
+                    }
+                }
+            }
+            out.push(acc);
+        }
     }
 }
 

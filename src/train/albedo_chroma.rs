@@ -21,6 +21,7 @@
 use crate::io::image::srgb_to_linear;
 use crate::sh::SH_C0;
 use crate::surfels::Surfels;
+use rayon::prelude::*;
 
 /// Surfels below this opacity carry colours nothing constrains (BENCHMARKS.md session 29).
 const MIN_OPACITY: f32 = 0.3;
@@ -54,28 +55,31 @@ impl AlbedoChroma {
     ) -> f32 {
         let n = surfels.len();
         let cells = (1.0 / bin).ceil() as usize + 1;
-        self.cell.clear();
-        self.weight.clear();
         self.sums.clear();
         self.sums.resize(cells * cells, [0.0; 4]);
+        // Each surfel's cell and weight (parallel: three sRGB decodes a surfel), then the sums.
+        (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let dc = surfels.sh[i][0];
+                let c = dc.map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
+                let sum = c[0] + c[1] + c[2];
+                let opacity = surfels.opacity(i);
+                if opacity < MIN_OPACITY || sum < MIN_BRIGHTNESS {
+                    return (u32::MAX, 0.0);
+                }
+                let s = surfels.scale(i);
+                let (x, y) = ((c[0] / sum / bin) as usize, (c[1] / sum / bin) as usize);
+                ((x.min(cells - 1) * cells + y.min(cells - 1)) as u32, opacity * s[0] * s[1])
+            })
+            .unzip_into_vecs(&mut self.cell, &mut self.weight);
         let mut total_weight = 0.0f64;
         for i in 0..n {
-            let dc = surfels.sh[i][0];
-            let c = dc.map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
-            let sum = c[0] + c[1] + c[2];
-            let opacity = surfels.opacity(i);
-            if opacity < MIN_OPACITY || sum < MIN_BRIGHTNESS {
-                self.cell.push(u32::MAX);
-                self.weight.push(0.0);
+            let (k, w) = (self.cell[i], self.weight[i]);
+            if k == u32::MAX {
                 continue;
             }
-            let s = surfels.scale(i);
-            let w = opacity * s[0] * s[1];
-            let (x, y) = ((c[0] / sum / bin) as usize, (c[1] / sum / bin) as usize);
-            let k = x.min(cells - 1) * cells + y.min(cells - 1);
-            self.cell.push(k as u32);
-            self.weight.push(w);
-            let cell = &mut self.sums[k];
+            let cell = &mut self.sums[k as usize];
             for ch in 0..3 {
                 cell[ch] += (w * albedo[i][ch]) as f64;
             }

@@ -417,7 +417,7 @@ impl TrainConfig {
     ///
     /// A key the file leaves out takes the built-in default, including the settings whose
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
-    /// `opacity_reset_cap`): those older values are for reading a run folder saved before the
+    /// `opacity_reset_cap`, `lambda_albedo_chroma`): those older values are for reading a run folder saved before the
     /// setting existed (`eval::load_run_config`), not for a hand-written settings file.
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
         let Some(path) = &cli.config else { return Ok(cli.clone()) };
@@ -622,6 +622,15 @@ mod tests {
             assert!(err.contains("opacity_reset_cap"), "{err}");
         }
         assert!(TrainConfig { opacity_reset_cap: 1.0, ..TrainConfig::default() }.validate().is_ok());
+        // A bin of 0 would make the prior's grid infinite.
+        for bad in [0.0, 0.001, 0.6, f32::NAN] {
+            let err =
+                TrainConfig { albedo_chroma_bin: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+            assert!(err.contains("albedo_chroma_bin"), "{err}");
+        }
+        let err =
+            TrainConfig { lambda_albedo_chroma: -0.1, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+        assert!(err.contains("lambda_albedo_chroma"), "{err}");
         for bad in [0, MAX_DOWNSCALE + 1, 800] {
             let err = TrainConfig { resolution: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
             assert!(err.contains("resolution") && err.contains("not a width"), "{err}");

@@ -94,8 +94,18 @@ impl PbrScene {
         if crate::relight::run_mode(run) == Some(crate::relight::RelightMode::Traced) {
             let mut mats = MaterialView::default();
             mats.update(&surfels);
-            let cache = crate::relight::traced_cache(&surfels, &mats, &env, cfg.pbr_samples, start, cfg.seed)?;
             let sample_factor = crate::train::inverse::sample_factor(&cfg);
+            let bounces = crate::relight::run_bounces(run);
+            let cache = crate::relight::traced_cache(
+                &surfels,
+                &mats,
+                &env,
+                cfg.pbr_samples,
+                start,
+                cfg.seed,
+                sample_factor,
+                bounces,
+            )?;
             let specular = cfg.specular;
             let filter_inv_square = cfg.filter_inv_square;
             return Ok(Some(PbrScene {

@@ -8,8 +8,10 @@
 //!   SH to the rendering equation evaluated with the current SH as indirect light: a
 //!   fixed-point iteration), which spares the tracer's backward pass.
 //! - `traced`: no optimisation; per surfel, visibility and indirect light are traced under the
-//!   new map, the indirect radiance of a hit surfel being its split-sum colour seen along its
-//!   normal (diffuse irradiance + prefiltered specular); the PBR render shows the result.
+//!   new map and the light is iterated over a few bounces on the same rays ([`traced_cache`]):
+//!   the hit surfels first radiate their split-sum colour seen along their normal (diffuse
+//!   irradiance + prefiltered specular, no occlusion), then their own traced prediction of the
+//!   bounce before; the PBR render shows the result.
 
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
@@ -63,6 +65,10 @@ pub struct RelightArgs {
     /// Traced rays per consistency surfel.
     #[arg(long, default_value_t = 16)]
     pub rc_rays: usize,
+    /// Light bounces of the traced prediction (the traced mode's light and the finetune's
+    /// start); 1 = the hit surfels lit by the unoccluded env only.
+    #[arg(long, default_value_t = TRACED_BOUNCES)]
+    pub bounces: usize,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 }
@@ -78,6 +84,8 @@ pub struct FinetuneSettings {
     pub lr_sh: f32,
     /// Box filter of the env for the rendering equation's samples (as in training).
     pub sample_factor: usize,
+    /// Light bounces of the traced start ([`traced_cache`]).
+    pub bounces: usize,
     pub seed: u64,
 }
 
@@ -88,7 +96,18 @@ pub fn prepare_env(path: &Path, rotate: f32, height: usize) -> crate::Result<Env
     Ok(env.resample(2 * height, height))
 }
 
-/// Visibility and split-sum indirect light under `env`, traced for every surfel.
+/// Light bounces of the traced prediction: bounce 1 lights the hit surfels by the unoccluded
+/// env (split-sum), each further bounce by their own traced prediction of the bounce before
+/// (visibility and inter-reflection included), composited along the same recorded rays.
+/// Measured on the shared spheres in BENCHMARKS.md (session 35).
+pub const TRACED_BOUNCES: usize = 4;
+
+/// Visibility and indirect light under `env`, traced for every surfel: the rays are traced once
+/// and the indirect light is iterated over `bounces` (≥ 1; see [`TRACED_BOUNCES`]). The hit
+/// surfels' radiance is their outgoing radiance along their own normal (view-independent), and
+/// the rendering equation of each bounce samples `env` box-filtered by `sample_factor` (as the
+/// PBR render does).
+#[allow(clippy::too_many_arguments)]
 pub fn traced_cache(
     surfels: &Surfels,
     mats: &MaterialView,
@@ -96,12 +115,14 @@ pub fn traced_cache(
     samples: usize,
     start: RayStart,
     seed: u64,
+    sample_factor: usize,
+    bounces: usize,
 ) -> crate::Result<IncidentCache> {
     let tracer = Tracer::build(surfels, &trace_settings());
     let split = SplitSum::new(env)?;
     let n = surfels.len();
-    // Each surfel's outgoing radiance along its normal, sRGB-free (linear), as a traced feature.
-    let feats: Vec<f32> = (0..n)
+    // Bounce 1: each surfel's split-sum radiance along its normal (linear), as a traced feature.
+    let mut radiance: Vec<f32> = (0..n)
         .into_par_iter()
         .flat_map_iter(|i| {
             let o = split.shade(mats.albedo[i], mats.roughness[i], mats.normal[i], mats.normal[i]);
@@ -109,7 +130,24 @@ pub fn traced_cache(
         })
         .collect();
     let mut cache = IncidentCache::default();
-    cache.refresh_with(&tracer, surfels, samples, start, seed, Some(&feats));
+    if bounces <= 1 {
+        // One bounce needs no hit lists (they cost 8 bytes a hit).
+        cache.refresh_with(&tracer, surfels, samples, start, seed, Some(&radiance));
+        return Ok(cache);
+    }
+    let hits = cache.refresh_recorded(&tracer, surfels, samples, start, seed, &radiance);
+    let env_s = env.box_downsample(sample_factor.max(1));
+    let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
+    for _ in 1..bounces {
+        let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
+        shade_surfels(&inp, &env_s, &mut direct, &mut indirect)?;
+        radiance.par_chunks_mut(3).zip(direct.par_iter().zip(&indirect)).for_each(|(r, (d, ind))| {
+            for c in 0..3 {
+                r[c] = d[c] + ind[c];
+            }
+        });
+        hits.composite(&radiance, &mut cache.indirect);
+    }
     Ok(cache)
 }
 
@@ -137,7 +175,8 @@ pub fn finetune(
     let env_s = env.box_downsample(cfg.sample_factor);
     let env = &env_s;
     // Start: DC = the traced prediction along the normal (encoded like the SH images).
-    let cache = traced_cache(surfels, mats, split_env, cfg.samples, cfg.start, cfg.seed)?;
+    let cache =
+        traced_cache(surfels, mats, split_env, cfg.samples, cfg.start, cfg.seed, cfg.sample_factor, cfg.bounces)?;
     let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
     let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
     shade_surfels(&inp, env, &mut direct, &mut indirect)?;
@@ -230,6 +269,9 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     if !(args.rotate.is_finite()) {
         anyhow::bail!("--rotate {}: must be a finite angle in degrees", args.rotate);
     }
+    if args.bounces == 0 {
+        anyhow::bail!("--bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");
+    }
     let cfg = crate::eval::load_run_config(run)?;
     let mut surfels = crate::eval::load_run_surfels(run)?;
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;
@@ -245,7 +287,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     mats.update(&surfels);
     let mut record = serde_json::json!({
         "mode": args.mode, "envmap": args.envmap.display().to_string(), "rotate_deg": args.rotate,
-        "source_run": run.display().to_string(),
+        "source_run": run.display().to_string(), "bounces": args.bounces,
     });
     match args.mode {
         RelightMode::Finetune => {
@@ -257,6 +299,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 start,
                 lr_sh: cfg.lr_sh,
                 sample_factor: crate::train::inverse::sample_factor(&cfg),
+                bounces: args.bounces,
                 seed: args.seed,
             };
             let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;
@@ -280,6 +323,17 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The traced bounces recorded in a relit run folder ([`TRACED_BOUNCES`] when it has none:
+/// runs relit before the setting existed are re-traced with today's default).
+pub fn run_bounces(run: &Path) -> usize {
+    let read = || -> Option<usize> {
+        let text = std::fs::read_to_string(run.join("relight.json")).ok()?;
+        let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+        v.get("bounces")?.as_u64().map(|b| b as usize)
+    };
+    read().filter(|&b| b >= 1).unwrap_or(TRACED_BOUNCES)
+}
+
 /// The relight mode recorded in a run folder, if it is a relit run.
 pub fn run_mode(run: &Path) -> Option<RelightMode> {
     let text = std::fs::read_to_string(run.join("relight.json")).ok()?;
@@ -301,7 +355,7 @@ mod tests {
         let env = EnvMap::constant(32, 16, l);
         let mut mats = MaterialView::default();
         mats.update(&s);
-        let cache = traced_cache(&s, &mats, &env, 64, RayStart::offset_only(1e-3), 5).unwrap();
+        let cache = traced_cache(&s, &mats, &env, 64, RayStart::offset_only(1e-3), 5, 1, TRACED_BOUNCES).unwrap();
         assert!(cache.visibility.iter().all(|&v| v == 1.0));
         assert!(cache.indirect.iter().all(|c| *c == [0.0; 3]));
         let shade = |a: f32| {
@@ -318,6 +372,52 @@ mod tests {
         for c in 0..3 {
             let lambert = (white[c] - black[c]) / kd;
             assert!((lambert - l[c] * coverage).abs() < 2e-3 * l[c], "{c}: {lambert} vs {}", l[c] * coverage);
+        }
+    }
+
+    /// Multi-bounce traced light equals tracing each bounce again with the previous bounce's
+    /// radiance as the payload (an independent path through the tracer's feature compositing).
+    #[test]
+    fn traced_bounces_match_tracing_every_bounce_again() {
+        let mut s = Surfels::random_in_box(400, [-1.0; 3], [1.0; 3], 4);
+        for (i, a) in s.albedo_logits.iter_mut().enumerate() {
+            *a = [0.5, 1.5, -0.5].map(|x| x + 0.01 * i as f32);
+        }
+        let mut mats = MaterialView::default();
+        mats.update(&s);
+        let env = EnvMap::constant(32, 16, [1.2, 0.9, 0.6]);
+        let start = RayStart { offset: 1e-3, skip_margin: Some(0.02) };
+        let (samples, seed, factor) = (8, 11, 2);
+        let tracer = Tracer::build(&s, &trace_settings());
+        let split = SplitSum::new(&env).unwrap();
+        let mut radiance: Vec<f32> = (0..s.len())
+            .flat_map(|i| {
+                let o = split.shade(mats.albedo[i], mats.roughness[i], mats.normal[i], mats.normal[i]);
+                [0, 1, 2].map(|c| o.diffuse[c] + o.specular[c])
+            })
+            .collect();
+        let env_s = env.box_downsample(factor);
+        let mut reference = IncidentCache::default();
+        let mut previous: Option<Vec<[f32; 3]>> = None;
+        for bounces in 1..=3 {
+            reference.refresh_with(&tracer, &s, samples, start, seed, Some(&radiance));
+            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces).unwrap();
+            assert_eq!(fast.visibility, reference.visibility);
+            for (k, (a, b)) in fast.indirect.iter().zip(&reference.indirect).enumerate() {
+                for c in 0..3 {
+                    assert!((a[c] - b[c]).abs() <= 1e-5 * (1.0 + b[c].abs()), "bounces {bounces}, ray {k}");
+                }
+            }
+            // Each bounce changes the light (the test would not see a missing bounce otherwise).
+            if let Some(p) = &previous {
+                let change: f32 = p.iter().zip(&fast.indirect).map(|(a, b)| (a[0] - b[0]).abs()).sum();
+                assert!(change > 1e-3, "bounce {bounces} changed nothing");
+            }
+            previous = Some(fast.indirect.clone());
+            let inp = reference.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
+            let (mut d, mut i) = (vec![[0.0f32; 3]; s.len()], vec![[0.0f32; 3]; s.len()]);
+            shade_surfels(&inp, &env_s, &mut d, &mut i).unwrap();
+            radiance = (0..s.len()).flat_map(|j| [0, 1, 2].map(|c| d[j][c] + i[j][c])).collect();
         }
     }
 

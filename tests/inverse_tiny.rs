@@ -193,6 +193,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
         no_relight: true,
         relight_iters: 10,
         relight_samples: 8,
+        relight_bounces: radiogs::relight::TRACED_BOUNCES,
         resolution: None,
     })
     .unwrap();
@@ -215,6 +216,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
             rotate: 30.0,
             rc_surfels: 64,
             rc_rays: 8,
+            bounces: 2,
             seed: 0,
         })
         .unwrap();

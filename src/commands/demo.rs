@@ -110,6 +110,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         no_relight: false,
         relight_iters: args.relight_iters,
         relight_samples: 64,
+        relight_bounces: crate::relight::TRACED_BOUNCES,
         resolution: None,
     })?;
     eprintln!("[4/4] writing the report");

@@ -243,9 +243,10 @@ fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> an
     scene.window = args.k;
     let bar = indicatif::ProgressBar::new(views.len() as u64);
     let png = args.format == ImageFormat::Png;
+    let split_sum = scene.split_sum();
     for view in views {
         let cam = &view.camera;
-        let img = scene.render(cam, [0.0; 3]);
+        let img = scene.render_with(cam, [0.0; 3], split_sum.as_ref());
         let mut rgba = Image::new(cam.width, cam.height, 4);
         for (i, px) in rgba.data.chunks_exact_mut(4).enumerate() {
             let a = img.alpha[i];

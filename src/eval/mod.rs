@@ -39,6 +39,9 @@ pub struct EvalArgs {
     /// Incident directions per surfel for the ray-traced relighting.
     #[arg(long, default_value_t = 64)]
     pub relight_samples: usize,
+    /// Light bounces of the ray-traced relighting prediction (and of the finetune's start).
+    #[arg(long, default_value_t = crate::relight::TRACED_BOUNCES)]
+    pub relight_bounces: usize,
     /// Evaluate on the test images shrunk by this factor (default: the run's `--resolution`,
     /// as 3DGS evaluates at its training `-r`; 1 = the files' full size).
     #[arg(short = 'r', long)]
@@ -406,7 +409,10 @@ fn eval_relight(
             let mut psnrs = Vec::new();
             let mut ssims = Vec::new();
             if mode == "traced" {
-                let cache = traced_cache(&surfels, &mats, &env, args.relight_samples, start, cfg.seed)?;
+                let factor = crate::train::inverse::sample_factor(cfg);
+                let bounces = args.relight_bounces;
+                let cache =
+                    traced_cache(&surfels, &mats, &env, args.relight_samples, start, cfg.seed, factor, bounces)?;
                 traced_scene = Some(crate::pbr_scene::PbrScene {
                     surfels: surfels.clone(),
                     env: env.clone(),
@@ -426,18 +432,21 @@ fn eval_relight(
                     start,
                     lr_sh: cfg.lr_sh,
                     sample_factor: crate::train::inverse::sample_factor(cfg),
+                    bounces: args.relight_bounces,
                     seed: cfg.seed,
                 };
                 finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;
                 traced_scene = None;
             }
+            // The prefiltered map of a split-sum lobe, once per light (not per frame).
+            let split_sum = traced_scene.as_ref().and_then(|sc| sc.split_sum());
             let setup = t0.elapsed().as_secs_f64();
             for (k, view) in views.iter().enumerate() {
                 let Some(gt) = view.load_relit(&name)? else { continue };
                 let cam = &view.camera;
                 let tf = Instant::now();
                 let pred = match &traced_scene {
-                    Some(sc) => sc.render(cam, white).pbr,
+                    Some(sc) => sc.render_with(cam, white, split_sum.as_ref()).pbr,
                     None => {
                         let settings = RasterSettings {
                             window: cfg.window,
@@ -483,6 +492,9 @@ fn eval_relight(
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    if args.relight_bounces == 0 {
+        anyhow::bail!("--relight-bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");
+    }
     let surfels = load_run_surfels(&args.run)?;
     let pbr_scene = crate::pbr_scene::PbrScene::from_run(&args.run)?;
     let cfg = load_run_config(&args.run)?;
@@ -649,10 +661,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             extra.insert("relight".into(), serde_json::to_value(relit)?);
             extra.insert("relight_protocol".into(), serde_json::json!(format!(
                 "per light with rgba_<light>.png and envmaps/<light>: albedo × the median scale; traced = per-surfel \
-                 rendering equation with {} traced directions (visibility + split-sum indirect) under the new map; \
-                 finetune = SH finetuned {} iterations by radiometric consistency, rasterised; prediction clipped to \
+                 rendering equation with {} traced directions (visibility + indirect light over {} bounces, the first \
+                 from the hit surfels' split-sum colour) under the new map; finetune = SH started at that prediction \
+                 and finetuned {} iterations by radiometric consistency, rasterised; prediction clipped to \
                  [0,1], masked by the GT alpha over white, PSNR/SSIM in sRGB, averaged over test views",
-                args.relight_samples, args.relight_iters
+                args.relight_samples, args.relight_bounces, args.relight_iters
             )));
         }
         if let Some(m) = summary["mean"].as_object_mut() {

@@ -20,7 +20,7 @@ use super::pbr::{CachedFootprints, PbrInputs};
 use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 use crate::envmap::{EnvMap, PackedFootprint};
 use crate::surfels::Surfels;
-use crate::trace::{Features, Ray, RayOutput, Tracer, trace};
+use crate::trace::{Features, HitRecord, Ray, RayOutput, Tracer, trace, trace_recorded};
 use rayon::prelude::*;
 
 /// Cached incident light: N surfels × S samples, surfel-major.
@@ -109,6 +109,38 @@ pub fn surfel_rays(
     w as f32
 }
 
+/// Which surfels each cached ray composited and with what weight (T·α), so that the indirect
+/// light can be composited again from new per-surfel radiance without tracing the rays again
+/// (multi-bounce relighting). Ray k of the cache owns `surfel[start[k]..start[k + 1]]`.
+#[derive(Clone, Debug, Default)]
+pub struct CachedHits {
+    pub start: Vec<usize>,
+    pub surfel: Vec<u32>,
+    pub weight: Vec<f32>,
+}
+
+/// Surfels traced per batch by [`IncidentCache::refresh_recorded`]: bounds the full hit
+/// records (32 bytes a hit) kept before they are compacted to 8 bytes a hit.
+const RECORD_BATCH_SURFELS: usize = 2048;
+
+impl CachedHits {
+    /// Composite per-surfel `radiance` (N × 3, linear) along every ray into `out` (one per ray).
+    pub fn composite(&self, radiance: &[f32], out: &mut [[f32; 3]]) {
+        debug_assert_eq!(out.len() + 1, self.start.len());
+        out.par_iter_mut().enumerate().with_min_len(1024).for_each(|(k, o)| {
+            let (a, b) = (self.start[k], self.start[k + 1]);
+            let mut c = [0.0f32; 3];
+            for (&i, &w) in self.surfel[a..b].iter().zip(&self.weight[a..b]) {
+                let r = &radiance[3 * i as usize..][..3];
+                c[0] += w * r[0];
+                c[1] += w * r[1];
+                c[2] += w * r[2];
+            }
+            *o = c;
+        });
+    }
+}
+
 impl IncidentCache {
     pub fn len(&self) -> usize {
         self.visibility.len().checked_div(self.samples).unwrap_or(0)
@@ -146,6 +178,61 @@ impl IncidentCache {
         }
         let all: Vec<u32> = (0..n as u32).collect();
         self.trace_rows(tracer, surfels, &all, start, seed, radiance);
+    }
+
+    /// As [`refresh_with`](Self::refresh_with), keeping every ray's hits: the indirect light
+    /// is `radiance` composited along the rays, and the returned hits composite any other
+    /// per-surfel radiance the same way ([`CachedHits::composite`]).
+    pub fn refresh_recorded(
+        &mut self,
+        tracer: &Tracer,
+        surfels: &Surfels,
+        samples: usize,
+        start: RayStart,
+        seed: u64,
+        radiance: &[f32],
+    ) -> CachedHits {
+        let n = surfels.len();
+        let s = samples;
+        self.samples = s;
+        self.footprints.clear();
+        self.dirs.resize(n * s, [0.0; 3]);
+        self.visibility.resize(n * s, 0.0);
+        self.indirect.resize(n * s, [0.0; 3]);
+        let mut hits = CachedHits { start: Vec::with_capacity(n * s + 1), ..Default::default() };
+        hits.start.push(0);
+        if n == 0 || s == 0 {
+            return hits;
+        }
+        let mut record = HitRecord::default();
+        let mut rays = Vec::new();
+        let mut out = Vec::new();
+        for first in (0..n).step_by(RECORD_BATCH_SURFELS) {
+            let m = RECORD_BATCH_SURFELS.min(n - first);
+            rays.clear();
+            rays.resize(m * s, Ray::default());
+            out.clear();
+            out.resize(m * s, RayOutput::default());
+            let weights: Vec<f32> = self.dirs[first * s..(first + m) * s]
+                .par_chunks_mut(s)
+                .zip(rays.par_chunks_mut(s))
+                .enumerate()
+                .map(|(j, (d, r))| surfel_rays(surfels, first + j, start, rotation_for(seed, first + j), d, r))
+                .collect();
+            self.weight = weights[0];
+            trace_recorded(tracer, surfels, &rays, &mut out, &mut record);
+            for (q, o) in out.iter().enumerate() {
+                self.visibility[first * s + q] = o.transmittance;
+                let (a, b) = record.spans[q];
+                for h in &record.hits[a as usize..b as usize] {
+                    hits.surfel.push(h.hit.index);
+                    hits.weight.push(h.trans * h.hit.alpha);
+                }
+                hits.start.push(hits.surfel.len());
+            }
+        }
+        hits.composite(radiance, &mut self.indirect);
+        hits
     }
 
     /// Re-trace only the listed surfels' rows (no gradients), with the directions a full
@@ -396,6 +483,41 @@ mod tests {
 
     /// Re-tracing a subset of rows gives those rows exactly what a full refresh with the same
     /// seed gives them and leaves the other rows alone; their footprints follow.
+    /// The recorded hits composite a radiance exactly as the tracer's feature payload does,
+    /// across the record's batches (more surfels than one batch), for any later radiance too.
+    #[test]
+    fn recorded_hits_composite_like_the_traced_payload() {
+        use rand::{RngExt, SeedableRng};
+        let n = RECORD_BATCH_SURFELS + 300;
+        let s = Surfels::random_in_box(n, [-1.0; 3], [1.0; 3], 9);
+        let tracer = Tracer::build(&s, &TraceSettings { linear_radiance: true, ..TraceSettings::default() });
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let first: Vec<f32> = (0..3 * n).map(|_| rng.random::<f32>()).collect();
+        let second: Vec<f32> = (0..3 * n).map(|_| 2.0 * rng.random::<f32>()).collect();
+        let start = RayStart { offset: 1e-3, skip_margin: Some(0.05) };
+        let mut recorded = IncidentCache::default();
+        let hits = recorded.refresh_recorded(&tracer, &s, 4, start, 7, &first);
+        assert_eq!(hits.start.len(), 4 * n + 1);
+        for radiance in [&first, &second] {
+            let mut traced = IncidentCache::default();
+            traced.refresh_with(&tracer, &s, 4, start, 7, Some(radiance));
+            assert!(traced.visibility.iter().any(|&v| v < 0.5), "the test needs occlusion");
+            assert_eq!(recorded.dirs, traced.dirs);
+            assert_eq!(recorded.visibility, traced.visibility);
+            assert_eq!(recorded.weight, traced.weight);
+            let mut again = vec![[0.0f32; 3]; 4 * n];
+            hits.composite(radiance, &mut again);
+            for (k, (a, b)) in again.iter().zip(&traced.indirect).enumerate() {
+                for c in 0..3 {
+                    assert!((a[c] - b[c]).abs() <= 1e-6 * (1.0 + b[c].abs()), "ray {k}: {a:?} vs {b:?}");
+                }
+            }
+            if std::ptr::eq(radiance, &first) {
+                assert_eq!(recorded.indirect, again);
+            }
+        }
+    }
+
     #[test]
     fn refreshing_some_rows_matches_a_full_refresh_there() {
         let s = Surfels::random_in_box(60, [-1.0; 3], [1.0; 3], 6);

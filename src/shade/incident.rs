@@ -141,7 +141,36 @@ impl CachedHits {
     }
 }
 
+/// Writes the S rays and directions of each surfel in `rows` (S = `dirs.len() / rows.len()`,
+/// rotations of refresh `seed`); returns the per-sample solid angle.
+fn rows_rays(
+    surfels: &Surfels,
+    rows: &[u32],
+    start: RayStart,
+    seed: u64,
+    dirs: &mut [[f32; 3]],
+    rays: &mut [Ray],
+) -> f32 {
+    let s = dirs.len() / rows.len().max(1);
+    let weights: Vec<f32> = dirs
+        .par_chunks_mut(s)
+        .zip(rays.par_chunks_mut(s))
+        .zip(rows.par_iter())
+        .map(|((d, r), &i)| surfel_rays(surfels, i as usize, start, rotation_for(seed, i as usize), d, r))
+        .collect();
+    weights.first().copied().unwrap_or(0.0)
+}
+
 impl IncidentCache {
+    /// Size the cache for `n` surfels × `samples` and drop the footprints (a refresh follows).
+    fn resize(&mut self, n: usize, samples: usize) {
+        self.samples = samples;
+        self.footprints.clear();
+        self.dirs.resize(n * samples, [0.0; 3]);
+        self.visibility.resize(n * samples, 0.0);
+        self.indirect.resize(n * samples, [0.0; 3]);
+    }
+
     pub fn len(&self) -> usize {
         self.visibility.len().checked_div(self.samples).unwrap_or(0)
     }
@@ -167,13 +196,8 @@ impl IncidentCache {
         radiance: Option<&[f32]>,
     ) {
         let n = surfels.len();
-        let s = samples;
-        self.samples = s;
-        self.footprints.clear();
-        self.dirs.resize(n * s, [0.0; 3]);
-        self.visibility.resize(n * s, 0.0);
-        self.indirect.resize(n * s, [0.0; 3]);
-        if n == 0 || s == 0 {
+        self.resize(n, samples);
+        if n == 0 || samples == 0 {
             return;
         }
         let all: Vec<u32> = (0..n as u32).collect();
@@ -194,11 +218,7 @@ impl IncidentCache {
     ) -> CachedHits {
         let n = surfels.len();
         let s = samples;
-        self.samples = s;
-        self.footprints.clear();
-        self.dirs.resize(n * s, [0.0; 3]);
-        self.visibility.resize(n * s, 0.0);
-        self.indirect.resize(n * s, [0.0; 3]);
+        self.resize(n, s);
         let mut hits = CachedHits { start: Vec::with_capacity(n * s + 1), ..Default::default() };
         hits.start.push(0);
         if n == 0 || s == 0 {
@@ -208,18 +228,13 @@ impl IncidentCache {
         let mut rays = Vec::new();
         let mut out = Vec::new();
         for first in (0..n).step_by(RECORD_BATCH_SURFELS) {
-            let m = RECORD_BATCH_SURFELS.min(n - first);
+            let rows: Vec<u32> = (first as u32..n.min(first + RECORD_BATCH_SURFELS) as u32).collect();
+            let m = rows.len();
             rays.clear();
             rays.resize(m * s, Ray::default());
             out.clear();
             out.resize(m * s, RayOutput::default());
-            let weights: Vec<f32> = self.dirs[first * s..(first + m) * s]
-                .par_chunks_mut(s)
-                .zip(rays.par_chunks_mut(s))
-                .enumerate()
-                .map(|(j, (d, r))| surfel_rays(surfels, first + j, start, rotation_for(seed, first + j), d, r))
-                .collect();
-            self.weight = weights[0];
+            self.weight = rows_rays(surfels, &rows, start, seed, &mut self.dirs[first * s..(first + m) * s], &mut rays);
             trace_recorded(tracer, surfels, &rays, &mut out, &mut record);
             for (q, o) in out.iter().enumerate() {
                 self.visibility[first * s + q] = o.transmittance;
@@ -268,13 +283,7 @@ impl IncidentCache {
         let m = rows.len();
         let mut dirs = vec![[0.0f32; 3]; m * s];
         let mut rays = vec![Ray::default(); m * s];
-        let weights: Vec<f32> = dirs
-            .par_chunks_mut(s)
-            .zip(rays.par_chunks_mut(s))
-            .zip(rows.par_iter())
-            .map(|((d, r), &i)| surfel_rays(surfels, i as usize, start, rotation_for(seed, i as usize), d, r))
-            .collect();
-        self.weight = weights[0];
+        self.weight = rows_rays(surfels, rows, start, seed, &mut dirs, &mut rays);
         let mut out = vec![RayOutput::default(); m * s];
         let mut composited = vec![0.0f32; if radiance.is_some() { m * s * 3 } else { 0 }];
         match radiance {

@@ -99,7 +99,8 @@ pub fn prepare_env(path: &Path, rotate: f32, height: usize) -> crate::Result<Env
 /// Light bounces of the traced prediction: bounce 1 lights the hit surfels by the unoccluded
 /// env (split-sum), each further bounce by their own traced prediction of the bounce before
 /// (visibility and inter-reflection included), composited along the same recorded rays.
-/// Measured on the shared spheres in BENCHMARKS.md (session 35).
+/// Four converge (eight add < 0.01 dB); with the true materials and light, one bounce cost
+/// cornell's open box 1.8 dB of relighting (BENCHMARKS.md, session 35).
 pub const TRACED_BOUNCES: usize = 4;
 
 /// Visibility and indirect light under `env`, traced for every surfel: the rays are traced once

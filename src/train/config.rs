@@ -282,6 +282,13 @@ pub struct TrainConfig {
     /// averages its cell and the 8 around it.
     #[arg(long, default_value_t = 0.015)]
     pub albedo_chroma_bin: f32,
+    /// Treat the ground truth's saturated channels (stored 255: clipped at 1 by the dataset's
+    /// view transform) as lower bounds in the PBR image loss [true]: a brighter rendering there
+    /// is not an error (src/train/pbr_image.rs; BENCHMARKS.md session 36). A run whose config
+    /// predates the setting loads as false.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    #[serde(default = "clip_saturated_off")]
+    pub clip_saturated: bool,
     /// White-light prior [0.01] and env total variation [0.02].
     #[arg(long, default_value_t = 0.01)]
     pub lambda_white_light: f32,
@@ -373,6 +380,11 @@ fn albedo_chroma_off() -> f32 {
     0.0
 }
 
+/// What every run before `clip_saturated` used: saturated pixels compared as exact values.
+fn clip_saturated_off() -> bool {
+    false
+}
+
 /// 2DGS's opacity reset value: what every run before `opacity_reset_cap` used.
 fn opacity_reset_cap_2dgs() -> f32 {
     0.01
@@ -417,7 +429,7 @@ impl TrainConfig {
     ///
     /// A key the file leaves out takes the built-in default, including the settings whose
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
-    /// `opacity_reset_cap`, `lambda_albedo_chroma`): those older values are for reading a run folder saved before the
+    /// `opacity_reset_cap`, `lambda_albedo_chroma`, `clip_saturated`): those older values are for reading a run folder saved before the
     /// setting existed (`eval::load_run_config`), not for a hand-written settings file.
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
         let Some(path) = &cli.config else { return Ok(cli.clone()) };

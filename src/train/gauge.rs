@@ -147,7 +147,7 @@ pub fn fit(cfg: &TrainConfig, state: &InverseState, images: &TrainImages) -> Gau
         base,
         env: state.env(),
         shading: SurfelShading::default(),
-        loss: PbrImageLoss::default(),
+        loss: PbrImageLoss::clipping(cfg.clip_saturated),
         gt: Vec::new(),
         v_features: Vec::new(),
         v_alpha: Vec::new(),

@@ -732,6 +732,7 @@ pub fn run_until(
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
     let mut sc = Scratch::default();
+    sc.pbr_image.clip_saturated = cfg.clip_saturated;
     let mut v_surfels = state.surfels.zeros_like();
     let started = Instant::now();
     let first_iteration = state.iteration;

@@ -1,6 +1,12 @@
 //! The PBR image loss of the PBR stages, forward and backward: the rasterised linear PBR
 //! channels composited over the linear background, sRGB-encoded, against the sRGB ground
 //! truth with weight·(L1 + 0.2·D-SSIM) (RadioGS / IRGS).
+//!
+//! Clipped ground truth: the datasets' PNGs are linear radiance clipped to [0, 1], then
+//! encoded (Blender's Standard view), so a stored 1 says "at least 1". With `clip_saturated`
+//! such a channel is a lower bound: a rendered value above it is compared as equal and gets no
+//! gradient, so an over-bright sky is not pulled down to the clipped pixels (spheres: 6.8 % of
+//! the covered training pixels clip, mostly in blue; BENCHMARKS.md session 36).
 
 use super::consistency::{encode, encode_derivative};
 use crate::loss::{self, Ssim};
@@ -12,7 +18,14 @@ pub struct PbrImageLoss {
     srgb: Vec<[f32; 3]>,
     v_srgb: Vec<[f32; 3]>,
     ssim: Ssim,
+    /// Per pixel: bit k set when channel k was clamped to its saturated ground truth.
+    clipped: Vec<u8>,
+    /// Treat saturated ground-truth channels as lower bounds (see the module comment).
+    pub clip_saturated: bool,
 }
+
+/// A ground-truth channel at or above this (sRGB, 8-bit quantised) was clipped at 1.
+pub const SATURATED: f32 = 1.0 - 0.5 / 255.0;
 
 /// Unweighted terms and the PSNR of the sRGB PBR image.
 #[derive(Clone, Copy, Debug, Default)]
@@ -23,6 +36,10 @@ pub struct PbrImageTerms {
 }
 
 impl PbrImageLoss {
+    pub fn clipping(clip_saturated: bool) -> PbrImageLoss {
+        PbrImageLoss { clip_saturated, ..Default::default() }
+    }
+
     /// `features` holds `channels` values per pixel with the linear PBR colour first and
     /// `alpha` the rendered opacity. With `weight` > 0 the gradients are added into
     /// `v_features` (the same layout) and `v_alpha` (through the background term).
@@ -48,6 +65,18 @@ impl PbrImageLoss {
         }));
         self.srgb.clear();
         self.srgb.extend(self.linear.iter().map(|c| c.map(encode)));
+        self.clipped.clear();
+        self.clipped.resize(np, 0);
+        if self.clip_saturated {
+            for ((s, g), bits) in self.srgb.iter_mut().zip(gt).zip(self.clipped.iter_mut()) {
+                for k in 0..3 {
+                    if g[k] >= SATURATED && s[k] >= g[k] {
+                        s[k] = g[k];
+                        *bits |= 1 << k;
+                    }
+                }
+            }
+        }
         let mut terms = PbrImageTerms { psnr: loss::psnr(&self.srgb, gt), ..Default::default() };
         if weight <= 0.0 {
             return terms;
@@ -59,6 +88,9 @@ impl PbrImageLoss {
         for p in 0..np {
             let mut va = 0.0;
             for k in 0..3 {
+                if self.clipped[p] & (1 << k) != 0 {
+                    continue;
+                }
                 let v = self.v_srgb[p][k] * encode_derivative(self.linear[p][k]);
                 v_features[p * channels + k] += v;
                 va -= v * bg_lin[k];
@@ -66,5 +98,80 @@ impl PbrImageLoss {
             v_alpha[p] += va;
         }
         terms
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// A small image with some ground-truth channels saturated; rendered values straddle 1.
+    fn case(seed: u64) -> (Vec<f32>, Vec<f32>, Vec<[f32; 3]>, (usize, usize)) {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let (w, h, ch) = (6, 5, 4);
+        let features: Vec<f32> = (0..w * h * ch).map(|_| rng.random_range(0.02..1.6)).collect();
+        let alpha: Vec<f32> = (0..w * h).map(|_| rng.random_range(0.3..1.0)).collect();
+        let gt: Vec<[f32; 3]> = (0..w * h)
+            .map(|_| [0; 3].map(|_| if rng.random_bool(0.3) { 1.0 } else { rng.random_range(0.05..0.95) }))
+            .collect();
+        (features, alpha, gt, (w, h))
+    }
+
+    fn loss_of(clip: bool, f: &[f32], a: &[f32], gt: &[[f32; 3]], wh: (usize, usize)) -> f64 {
+        let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
+        let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
+        let t = l.evaluate(f, 4, a, [0.2, 0.5, 0.9], gt, wh, 1.0, &mut vf, &mut va);
+        (t.l1 + 0.2 * t.dssim) as f64
+    }
+
+    #[test]
+    fn clipped_loss_gradients_match_finite_differences() {
+        for clip in [false, true] {
+            let (f, a, gt, wh) = case(7);
+            let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
+            let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
+            l.evaluate(&f, 4, &a, [0.2, 0.5, 0.9], &gt, wh, 1.0, &mut vf, &mut va);
+            let eps = 2e-3f32;
+            let (mut checked, mut max_err, mut flat) = (0, 0.0f64, 0);
+            for i in (0..f.len()).filter(|i| i % 4 != 3) {
+                let (mut fp, mut fm) = (f.clone(), f.clone());
+                fp[i] += eps;
+                fm[i] -= eps;
+                let up = (loss_of(clip, &fp, &a, &gt, wh) - loss_of(clip, &f, &a, &gt, wh)) / eps as f64;
+                let down = (loss_of(clip, &f, &a, &gt, wh) - loss_of(clip, &fm, &a, &gt, wh)) / eps as f64;
+                // A kink of |·| or of the clamp inside ±eps: one-sided slopes disagree; skip.
+                if (up - down).abs() > 1e-3 * up.abs().max(down.abs()).max(1e-4) + 2e-5 {
+                    continue;
+                }
+                let fd = 0.5 * (up + down);
+                max_err = max_err.max((fd - vf[i] as f64).abs() / fd.abs().max(1e-4));
+                flat += (fd == 0.0) as usize;
+                checked += 1;
+            }
+            assert!(checked > f.len() / 2, "checked only {checked}");
+            // Clamped channels (flat loss) are among those checked only when clipping.
+            assert_eq!(flat > 0, clip, "flat entries {flat}");
+            assert!(max_err < 0.02, "clip {clip}: worst relative error {max_err}");
+        }
+    }
+
+    #[test]
+    fn a_saturated_channel_is_a_lower_bound() {
+        let (w, h) = (8, 8);
+        let gt = vec![[1.0, 0.5, 0.2]; w * h];
+        let alpha = vec![1.0; w * h];
+        // Red rendered at 1.7 (linear), the others exact.
+        let g = |x: f32| crate::io::image::srgb_to_linear(x);
+        let over: Vec<f32> = (0..w * h).flat_map(|_| [1.7, g(0.5), g(0.2), 0.0]).collect();
+        let under: Vec<f32> = (0..w * h).flat_map(|_| [g(0.8), g(0.5), g(0.2), 0.0]).collect();
+        assert!(loss_of(true, &over, &alpha, &gt, (w, h)) < 1e-6);
+        assert!(loss_of(false, &over, &alpha, &gt, (w, h)) > 1e-2);
+        // Below the clipped value the loss still counts.
+        assert!(loss_of(true, &under, &alpha, &gt, (w, h)) > 1e-2);
+        let mut l = PbrImageLoss { clip_saturated: true, ..Default::default() };
+        let (mut vf, mut va) = (vec![0.0; over.len()], vec![0.0; w * h]);
+        l.evaluate(&over, 4, &alpha, [0.0; 3], &gt, (w, h), 1.0, &mut vf, &mut va);
+        assert!(vf.iter().step_by(4).all(|&v| v == 0.0), "no gradient through a clamped channel");
     }
 }

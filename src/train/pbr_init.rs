@@ -235,6 +235,7 @@ impl InitPass {
     ) -> f32 {
         let (w, h) = (out.width as usize, out.height as usize);
         let wp = cfg.lambda_pbr;
+        self.pbr_image.clip_saturated = cfg.clip_saturated;
         let t = self.pbr_image.evaluate(
             &out.features,
             CHANNELS,

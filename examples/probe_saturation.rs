@@ -1,4 +1,5 @@
-//! How many covered training pixels are clipped at 1 (any channel ≥ 254/255)?
+//! How many covered training pixels are clipped at 1 (any channel stored as 255)? Those are
+//! what `--clip-saturated` treats as lower bounds.
 //! `cargo run --release --example probe_saturation -- DATA`
 use radiogs::io::image::read_rgba;
 use std::path::Path;
@@ -21,7 +22,7 @@ fn main() {
             c += 1;
             let mut any = false;
             for ch in 0..3 {
-                if px[ch] >= 254.0 / 255.0 {
+                if px[ch] >= 1.0 {
                     clipped_ch[ch] += 1;
                     any = true;
                 }

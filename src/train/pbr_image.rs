@@ -5,7 +5,7 @@
 //! Clipped ground truth: the datasets' PNGs are linear radiance clipped to [0, 1], then
 //! encoded (Blender's Standard view), so a stored 1 says "at least 1". With `clip_saturated`
 //! such a channel is a lower bound: a rendered value above it is compared as equal and gets no
-//! gradient, so an over-bright sky is not pulled down to the clipped pixels (spheres: 6.8 % of
+//! gradient, so the light and albedo are not pulled down to the clipped values (spheres: 6.6 % of
 //! the covered training pixels clip, mostly in blue; BENCHMARKS.md session 36).
 
 use super::consistency::{encode, encode_derivative};

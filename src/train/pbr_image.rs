@@ -70,7 +70,8 @@ impl PbrImageLoss {
         if self.clip_saturated {
             for ((s, g), bits) in self.srgb.iter_mut().zip(gt).zip(self.clipped.iter_mut()) {
                 for k in 0..3 {
-                    if g[k] >= SATURATED && s[k] >= g[k] {
+                    // At most 1: an HDR ground truth above 1 is a value, not a clip.
+                    if (SATURATED..=1.0).contains(&g[k]) && s[k] >= g[k] {
                         s[k] = g[k];
                         *bits |= 1 << k;
                     }
@@ -169,6 +170,10 @@ mod tests {
         assert!(loss_of(false, &over, &alpha, &gt, (w, h)) > 1e-2);
         // Below the clipped value the loss still counts.
         assert!(loss_of(true, &under, &alpha, &gt, (w, h)) > 1e-2);
+        // A ground truth above 1 (HDR, not clipped) is a value: a brighter rendering costs.
+        let hdr = vec![[1.5, 0.5, 0.2]; w * h];
+        let brighter: Vec<f32> = (0..w * h).flat_map(|_| [4.0, g(0.5), g(0.2), 0.0]).collect();
+        assert!(loss_of(true, &brighter, &alpha, &hdr, (w, h)) > 1e-2);
         let mut l = PbrImageLoss { clip_saturated: true, ..Default::default() };
         let (mut vf, mut va) = (vec![0.0; over.len()], vec![0.0; w * h]);
         l.evaluate(&over, 4, &alpha, [0.0; 3], &gt, (w, h), 1.0, &mut vf, &mut va);

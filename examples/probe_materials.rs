@@ -43,6 +43,7 @@ fn main() -> anyhow::Result<()> {
         if object.sdf(p).abs() > 0.015 || surfels.opacity(i) < 0.3 {
             continue;
         }
+        let truth = object.base_colour(&readme.materials[&object.material], p);
         let face = match object.shape()? {
             Shape::Cuboid { half } => {
                 // The face whose plane is nearest: the axis with the largest |q| − half.
@@ -51,11 +52,15 @@ fn main() -> anyhow::Result<()> {
                     (0..3).max_by(|&a, &b| (q[a].abs() - half[a]).total_cmp(&(q[b].abs() - half[b]))).unwrap_or(0);
                 2 * axis + usize::from(q[axis] < 0.0)
             }
+            // A textured object (the checker floor) splits by its truth's brightness, so a
+            // compressed contrast between its two colours shows.
+            _ if object.textured(&readme.materials[&object.material]) => {
+                usize::from(truth[0] + truth[1] + truth[2] < 1.8)
+            }
             _ => 0,
         };
         let s = surfels.scale(i);
         let w = surfels.opacity(i) as f64 * (s[0] * s[1]) as f64;
-        let truth = object.base_colour(&readme.materials[&object.material], p);
         let a = surfels.albedo(i);
         let g = &mut groups[k * 6 + face];
         g.weight += w;
@@ -95,7 +100,11 @@ fn main() -> anyhow::Result<()> {
             let mean = |v: [f64; 3]| v.map(|x| x / g.weight);
             let (a, t) = (mean(g.albedo), mean(g.truth));
             let fmt = |v: [f64; 3]| format!("{:.3} {:.3} {:.3}", v[0], v[1], v[2]);
-            let face = if matches!(object.shape()?, Shape::Cuboid { .. }) { *face } else { "all" };
+            let face = match object.shape()? {
+                Shape::Cuboid { .. } => *face,
+                _ if object.textured(&readme.materials[&object.material]) => ["light", "dark"][f],
+                _ => "all",
+            };
             println!(
                 "{:<20} {:>4} {:>5.1}% {:>7}  {:<20} {:<20} {:<20} {:>5.2} {:>5.2}  {:<20} {:<20}",
                 object.object,

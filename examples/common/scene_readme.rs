@@ -175,6 +175,11 @@ impl Object {
 
     /// Base colour (linear) of this object's material at world point p: the Blender checker
     /// texture on object coordinates evaluated like Cycles (|floor| parity per axis).
+    /// Whether the material's base colour varies over the surface (a checker).
+    pub fn textured(&self, material: &Material) -> bool {
+        matches!(material.base_color_linear, BaseColor::Checker { .. })
+    }
+
     pub fn base_colour(&self, material: &Material, p: [f64; 3]) -> [f64; 3] {
         match &material.base_color_linear {
             BaseColor::Rgb(c) => *c,

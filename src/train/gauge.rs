@@ -120,6 +120,7 @@ impl Evaluator<'_> {
                 &out.alpha,
                 bg,
                 &self.gt,
+                alpha,
                 wh,
                 1.0,
                 &mut self.v_features,

@@ -495,8 +495,18 @@ fn iterate(
 
     // PBR image: linear features over the linear background, then sRGB.
     let wp = cfg.lambda_pbr;
-    let pbr =
-        sc.pbr_image.evaluate(&out.features, ch, &out.alpha, bg, &sc.gt, (w, h), wp, &mut g.v_features, &mut g.v_alpha);
+    let pbr = sc.pbr_image.evaluate(
+        &out.features,
+        ch,
+        &out.alpha,
+        bg,
+        &sc.gt,
+        alpha,
+        (w, h),
+        wp,
+        &mut g.v_features,
+        &mut g.v_alpha,
+    );
     (l.pbr_l1, l.pbr_dssim, l.psnr_pbr) = (pbr.l1, pbr.dssim, pbr.psnr);
     l.total += wp * (l.pbr_l1 + 0.2 * l.pbr_dssim);
     if cfg.lambda_mask_inverse > 0.0 {

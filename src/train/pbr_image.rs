@@ -6,7 +6,9 @@
 //! encoded (Blender's Standard view), so a stored 1 says "at least 1". With `clip_saturated`
 //! such a channel is a lower bound: a rendered value above it is compared as equal and gets no
 //! gradient, so the light and albedo are not pulled down to the clipped values (spheres: 6.6 % of
-//! the covered training pixels clip, mostly in blue; BENCHMARKS.md session 36).
+//! the covered training pixels clip, mostly in blue; BENCHMARKS.md session 36). Only pixels the
+//! object covers fully count (ground-truth alpha ≥ `SATURATED`): a white background composites
+//! to 1 as well, and there a brighter rendering (a floater) is an error.
 
 use super::consistency::{encode, encode_derivative};
 use crate::loss::{self, Ssim};
@@ -41,7 +43,7 @@ impl PbrImageLoss {
     }
 
     /// `features` holds `channels` values per pixel with the linear PBR colour first and
-    /// `alpha` the rendered opacity. With `weight` > 0 the gradients are added into
+    /// `alpha` the rendered opacity; `gt` is the ground truth over `bg`, `gt_alpha` its alpha. With `weight` > 0 the gradients are added into
     /// `v_features` (the same layout) and `v_alpha` (through the background term).
     #[allow(clippy::too_many_arguments)]
     pub fn evaluate(
@@ -51,6 +53,7 @@ impl PbrImageLoss {
         alpha: &[f32],
         bg: [f32; 3],
         gt: &[[f32; 3]],
+        gt_alpha: &[f32],
         (w, h): (usize, usize),
         weight: f32,
         v_features: &mut [f32],
@@ -68,7 +71,10 @@ impl PbrImageLoss {
         self.clipped.clear();
         self.clipped.resize(np, 0);
         if self.clip_saturated {
-            for ((s, g), bits) in self.srgb.iter_mut().zip(gt).zip(self.clipped.iter_mut()) {
+            for (((s, g), bits), &a) in self.srgb.iter_mut().zip(gt).zip(self.clipped.iter_mut()).zip(gt_alpha) {
+                if a < SATURATED {
+                    continue;
+                }
                 for k in 0..3 {
                     // At most 1: an HDR ground truth above 1 is a value, not a clip.
                     if (SATURATED..=1.0).contains(&g[k]) && s[k] >= g[k] {
@@ -120,9 +126,21 @@ mod tests {
     }
 
     fn loss_of(clip: bool, f: &[f32], a: &[f32], gt: &[[f32; 3]], wh: (usize, usize)) -> f64 {
+        loss_over(clip, f, a, [0.2, 0.5, 0.9], gt, &vec![1.0; a.len()], wh)
+    }
+
+    fn loss_over(
+        clip: bool,
+        f: &[f32],
+        a: &[f32],
+        bg: [f32; 3],
+        gt: &[[f32; 3]],
+        gt_alpha: &[f32],
+        wh: (usize, usize),
+    ) -> f64 {
         let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
         let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
-        let t = l.evaluate(f, 4, a, [0.2, 0.5, 0.9], gt, wh, 1.0, &mut vf, &mut va);
+        let t = l.evaluate(f, 4, a, bg, gt, gt_alpha, wh, 1.0, &mut vf, &mut va);
         (t.l1 + 0.2 * t.dssim) as f64
     }
 
@@ -132,7 +150,7 @@ mod tests {
             let (f, a, gt, wh) = case(7);
             let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
             let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
-            l.evaluate(&f, 4, &a, [0.2, 0.5, 0.9], &gt, wh, 1.0, &mut vf, &mut va);
+            l.evaluate(&f, 4, &a, [0.2, 0.5, 0.9], &gt, &vec![1.0; a.len()], wh, 1.0, &mut vf, &mut va);
             let eps = 2e-3f32;
             let (mut checked, mut max_err, mut flat) = (0, 0.0f64, 0);
             for i in (0..f.len()).filter(|i| i % 4 != 3) {
@@ -176,7 +194,24 @@ mod tests {
         assert!(loss_of(true, &brighter, &alpha, &hdr, (w, h)) > 1e-2);
         let mut l = PbrImageLoss { clip_saturated: true, ..Default::default() };
         let (mut vf, mut va) = (vec![0.0; over.len()], vec![0.0; w * h]);
-        l.evaluate(&over, 4, &alpha, [0.0; 3], &gt, (w, h), 1.0, &mut vf, &mut va);
+        l.evaluate(&over, 4, &alpha, [0.0; 3], &gt, &alpha, (w, h), 1.0, &mut vf, &mut va);
         assert!(vf.iter().step_by(4).all(|&v| v == 0.0), "no gradient through a clamped channel");
+    }
+
+    #[test]
+    fn a_white_background_is_not_a_clip() {
+        // The ground truth's background (alpha 0) over white is 1 in every channel: a floater
+        // rendered brighter than white there still costs, and gets a gradient.
+        let (w, h) = (8, 8);
+        let white = vec![[1.0; 3]; w * h];
+        let bright: Vec<f32> = (0..w * h).flat_map(|_| [0.9, 0.9, 0.9, 0.0]).collect();
+        let rendered_alpha = vec![0.5; w * h];
+        let covered = loss_over(true, &bright, &rendered_alpha, [1.0; 3], &white, &vec![1.0; w * h], (w, h));
+        let background = loss_over(true, &bright, &rendered_alpha, [1.0; 3], &white, &vec![0.0; w * h], (w, h));
+        assert!(covered < 1e-6, "{covered}");
+        assert!(background > 1e-2, "{background}");
+        // Partly covered pixels are not clips either.
+        let edge = loss_over(true, &bright, &rendered_alpha, [1.0; 3], &white, &vec![0.6; w * h], (w, h));
+        assert!(edge > 1e-2, "{edge}");
     }
 }

@@ -242,6 +242,7 @@ impl InitPass {
             &out.alpha,
             bg,
             gt,
+            gt_alpha,
             (w, h),
             wp,
             &mut g.v_features,

@@ -151,6 +151,83 @@ fn box_filter<const N: usize>(grid: &[[f64; N]], cells: usize, out: &mut Vec<[f6
     }
 }
 
+/// Albedo range of the activation 0.03 + 0.77·sigmoid, kept just inside so the logit is finite.
+const ALBEDO_LO: f32 = 0.03 + 1e-4;
+const ALBEDO_HI: f32 = 0.80 - 1e-4;
+
+/// A fresh albedo per surfel that starts with the hue it was seen with (`albedo_init_hue`).
+///
+/// Why: from a grey start the light takes the scene's colours first (its learning rate is
+/// the larger, and a saturated wall hardly constrains its own low channels), and the albedo
+/// catches up only partly (cornell's red wall ends 3–5× too bright in green and blue,
+/// BENCHMARKS.md session 36). Surfel i's linear SH colour c_i (DC part) has chromaticity
+/// χ_i = c_i / Σc_i. The light's chromaticity χ_L is estimated from the near-grey surfels
+/// ("grey pixels" colour constancy): starting from neutral, the weighted mean χ of the surfels
+/// within `GREY_RADIUS` of the estimate, three times (a scene's mean colour would take a
+/// saturated wall's hue for the light's: cornell's white floor then starts blue). Then
+/// q_c = (χ_i,c / χ_L,c)^strength and the albedo is `level` · q_c / max(q), clamped to the
+/// albedo range: the brightest channel starts at `level`, as a grey surfel's (a saturated red
+/// starts at (level, low, low), not brighter in red than white is: with the mean level kept,
+/// cornell's red wall started at 2.6 × 0.3 in red, ended at the range's 0.8 against the true
+/// 0.63 and the light dimmed to match). Surfels too transparent
+/// or too dark to have a hue start grey at `level`.
+pub fn hued_albedo(surfels: &Surfels, level: f32, strength: f32) -> Vec<[f32; 3]> {
+    let n = surfels.len();
+    let chroma: Vec<Option<[f32; 3]>> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let c = surfels.sh[i][0].map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
+            let sum = c[0] + c[1] + c[2];
+            (surfels.opacity(i) >= MIN_OPACITY && sum >= MIN_BRIGHTNESS).then(|| c.map(|x| x / sum))
+        })
+        .collect();
+    let light = light_chromaticity(surfels, &chroma);
+    let grey = [level.clamp(ALBEDO_LO, ALBEDO_HI); 3];
+    chroma
+        .iter()
+        .map(|chi| match chi {
+            None => grey,
+            Some(chi) => {
+                // A channel that is 0 (a pure primary) keeps a small floor so q stays finite.
+                let q = [0, 1, 2].map(|c| (chi[c].max(1e-3) / light[c]).powf(strength));
+                let q_max = q[0].max(q[1]).max(q[2]);
+                q.map(|x| (level * x / q_max).clamp(ALBEDO_LO, ALBEDO_HI))
+            }
+        })
+        .collect()
+}
+
+/// How far (max over channels) from the light's chromaticity a surfel's may lie to count as
+/// grey: beyond a tinted light on a white surface (spheres' floor under the blue sky is 0.07
+/// off neutral), short of a saturated wall (cornell's green wall is 0.2 off).
+const GREY_RADIUS: f32 = 0.1;
+
+/// The light's chromaticity from the near-grey surfels (see [`hued_albedo`]); neutral when
+/// none is near grey.
+fn light_chromaticity(surfels: &Surfels, chroma: &[Option<[f32; 3]>]) -> [f32; 3] {
+    let mut light = [1.0f32 / 3.0; 3];
+    for _ in 0..3 {
+        let (mut sum, mut total) = ([0.0f64; 3], 0.0f64);
+        for (i, chi) in chroma.iter().enumerate() {
+            let Some(chi) = chi else { continue };
+            if (0..3).any(|c| (chi[c] - light[c]).abs() > GREY_RADIUS) {
+                continue;
+            }
+            let s = surfels.scale(i);
+            let w = (surfels.opacity(i) * s[0] * s[1]) as f64;
+            total += w;
+            for c in 0..3 {
+                sum[c] += w * chi[c] as f64;
+            }
+        }
+        if total <= 0.0 {
+            break;
+        }
+        light = sum.map(|x| (x / total) as f32);
+    }
+    light
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -253,5 +330,51 @@ mod tests {
         assert!(loss > 0.01, "{loss}");
         assert!(grad[0][0] > 0.0 && grad[2][0] < 0.0, "{grad:?}");
         assert!(grad[1].iter().all(|g| g.abs() < 1e-7), "{grad:?}");
+    }
+
+    #[test]
+    fn hued_albedo_keeps_the_hue_and_not_the_light() {
+        // Grey and red surfels: under a white and under a blue-tinted light the start is the
+        // same (the light's tint is read off the grey surfels), grey surfels start grey, red
+        // ones red, all with the brightest channel at the level.
+        let lit_with = |tint: [f32; 3], red: fn(usize) -> bool| {
+            let mut s = Surfels::random_in_box(40, [0.0; 3], [1.0; 3], 3);
+            for i in 0..s.len() {
+                let albedo = if red(i) { [0.7, 0.1, 0.1] } else { [0.5, 0.5, 0.5] };
+                let linear = [0, 1, 2].map(|c| albedo[c] * tint[c]);
+                s.sh[i][0] = linear.map(|x| rgb_to_dc(crate::io::image::linear_to_srgb(x)));
+                s.opacity_logits[i] = 3.0;
+                s.log_scales[i] = [-2.0, -2.0];
+            }
+            // One transparent and one black surfel: no hue to take.
+            s.opacity_logits[1] = -4.0;
+            s.sh[2][0] = [0.0; 3].map(rgb_to_dc);
+            s
+        };
+        let lit = |tint: [f32; 3]| lit_with(tint, |i| i % 4 == 0);
+        let (white, tinted) = (lit([1.0; 3]), lit([0.8, 0.9, 1.2]));
+        let a = hued_albedo(&tinted, 0.3, 1.0);
+        let a_white = hued_albedo(&white, 0.3, 1.0);
+        assert_eq!(a[1], [0.3; 3]);
+        assert_eq!(a[2], [0.3; 3]);
+        for i in 3..a.len() {
+            let (a, b) = (a[i], a_white[i]);
+            assert!(a.iter().all(|&x| (ALBEDO_LO..=ALBEDO_HI).contains(&x)), "{i}: {a:?}");
+            assert!((0..3).all(|c| (a[c] - b[c]).abs() < 0.02), "{i}: tinted {a:?}, white {b:?}");
+            assert!((a[0].max(a[1]).max(a[2]) - 0.3).abs() < 1e-4, "{i}: {a:?}");
+            if i % 4 == 0 {
+                assert!(a[0] > 2.5 * a[1] && a[0] > 2.5 * a[2], "red surfel {i}: {a:?}");
+            } else {
+                assert!(a.iter().all(|&x| (x - 0.3).abs() < 1e-3), "grey surfel {i}: {a:?}");
+            }
+        }
+        // Red surfels in the majority (3 in 4): the grey ones still start grey (a mean over the
+        // scene would take the red for the light's colour).
+        let mostly_red = hued_albedo(&lit_with([0.8, 0.9, 1.2], |i| i % 4 != 3), 0.3, 1.0);
+        assert!(mostly_red[3].iter().all(|&x| (x - 0.3).abs() < 1e-3), "{:?}", mostly_red[3]);
+        // Strength 0 is the published grey start; a half strength lies between.
+        assert!(hued_albedo(&tinted, 0.3, 0.0).iter().all(|a| a.iter().all(|&x| (x - 0.3).abs() < 1e-6)));
+        let (full, half) = (a[4], hued_albedo(&tinted, 0.3, 0.5)[4]);
+        assert!(half[0] == full[0] && half[1] > full[1] && half[1] < 0.3, "{half:?} {full:?}");
     }
 }

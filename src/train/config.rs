@@ -338,6 +338,15 @@ pub struct TrainConfig {
     /// Fresh materials and light at the start of the inverse stage [0.3, 0.6, 1.5].
     #[arg(long, default_value_t = 0.3)]
     pub albedo_init: f32,
+    /// How much of each surfel's observed hue the fresh albedo starts with [0; not in the
+    /// published method]: 0 = grey `albedo_init` everywhere (published); 1 = the chromaticity
+    /// of its SH colour relative to the light's (read off the near-grey surfels), brightest
+    /// channel at `albedo_init` (src/train/albedo_chroma.rs). Cornell relights 1.2 dB better
+    /// at 1, spheres 0.75 dB worse (BENCHMARKS.md session 37): for scenes dominated by
+    /// saturated colours.
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub albedo_init_hue: f32,
     #[arg(long, default_value_t = 0.6)]
     pub roughness_init: f32,
     #[arg(long, default_value_t = 1.5)]
@@ -523,6 +532,9 @@ impl TrainConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(key, format!("{v} must be finite and ≥ 0"));
             }
+        }
+        if !(0.0..=1.0).contains(&self.albedo_init_hue) {
+            return bad("albedo_init_hue", format!("{} is not in [0, 1]", self.albedo_init_hue));
         }
         if !(self.albedo_chroma_bin.is_finite() && self.albedo_chroma_bin >= 0.002 && self.albedo_chroma_bin <= 0.5) {
             return bad("albedo_chroma_bin", format!("{} is not in [0.002, 0.5]", self.albedo_chroma_bin));

@@ -135,7 +135,14 @@ impl InverseState {
             tracing::info!("inverse: the geometry stage culled back faces; its {n0} surfels keep their orientation");
         }
         if kept_light.is_none() {
-            surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
+            if cfg.albedo_init_hue > 0.0 {
+                let fresh = super::albedo_chroma::hued_albedo(&surfels, cfg.albedo_init, cfg.albedo_init_hue);
+                for (logit, a) in surfels.albedo_logits.iter_mut().zip(&fresh) {
+                    *logit = a.map(albedo_to_logit);
+                }
+            } else {
+                surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
+            }
             surfels.roughness_logits.iter_mut().for_each(|r| *r = logit(cfg.roughness_init));
         }
         let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));

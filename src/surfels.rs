@@ -38,6 +38,11 @@ pub fn logit(p: f32) -> f32 {
     let p = p.clamp(1e-6, 1.0 - 1e-6);
     (p / (1.0 - p)).ln()
 }
+/// The albedo activation's range, kept just inside so that the logit of a clamped value is
+/// finite.
+pub const ALBEDO_LO: f32 = 0.03 + 1e-4;
+pub const ALBEDO_HI: f32 = 0.80 - 1e-4;
+
 pub fn albedo_from_logit(x: f32) -> f32 {
     0.03 + 0.77 * sigmoid(x)
 }

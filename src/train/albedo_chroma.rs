@@ -20,7 +20,7 @@
 
 use crate::io::image::srgb_to_linear;
 use crate::sh::SH_C0;
-use crate::surfels::Surfels;
+use crate::surfels::{ALBEDO_HI, ALBEDO_LO, Surfels};
 use rayon::prelude::*;
 
 /// Surfels below this opacity carry colours nothing constrains (BENCHMARKS.md session 29).
@@ -150,10 +150,6 @@ fn box_filter<const N: usize>(grid: &[[f64; N]], cells: usize, out: &mut Vec<[f6
         }
     }
 }
-
-/// Albedo range of the activation 0.03 + 0.77·sigmoid, kept just inside so the logit is finite.
-const ALBEDO_LO: f32 = 0.03 + 1e-4;
-const ALBEDO_HI: f32 = 0.80 - 1e-4;
 
 /// A fresh albedo per surfel that starts with the hue it was seen with (`albedo_init_hue`).
 ///

@@ -655,6 +655,12 @@ mod tests {
         let err =
             TrainConfig { lambda_albedo_chroma: -0.1, ..TrainConfig::default() }.validate().unwrap_err().to_string();
         assert!(err.contains("lambda_albedo_chroma"), "{err}");
+        for bad in [-0.1, 1.5, f32::NAN] {
+            let err =
+                TrainConfig { albedo_init_hue: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+            assert!(err.contains("albedo_init_hue"), "{err}");
+        }
+        assert!(TrainConfig { albedo_init_hue: 1.0, ..TrainConfig::default() }.validate().is_ok());
         for bad in [0, MAX_DOWNSCALE + 1, 800] {
             let err = TrainConfig { resolution: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
             assert!(err.contains("resolution") && err.contains("not a width"), "{err}");

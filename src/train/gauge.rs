@@ -20,12 +20,9 @@ use super::pbr_image::PbrImageLoss;
 use crate::envmap::EnvMap;
 use crate::raster::{self, Features, Outputs, RasterSettings};
 use crate::shade::splitsum::SplitSum;
-use crate::surfels::albedo_to_logit;
+use crate::surfels::{ALBEDO_HI, ALBEDO_LO, albedo_to_logit};
 use crate::train::config::{Specular, TrainConfig};
 
-/// Albedo range of the activation 0.03 + 0.77·sigmoid, kept just inside so the logit is finite.
-const ALBEDO_LO: f32 = 0.03 + 1e-4;
-const ALBEDO_HI: f32 = 0.80 - 1e-4;
 /// Scales searched: s in [1/4, 4].
 const LOG_S_MAX: f64 = 1.386_294_4;
 /// Grid points over [−LOG_S_MAX, LOG_S_MAX] (odd, so s = 1 is one of them) and golden-section

@@ -61,16 +61,9 @@ impl AlbedoChroma {
         (0..n)
             .into_par_iter()
             .map(|i| {
-                let dc = surfels.sh[i][0];
-                let c = dc.map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
-                let sum = c[0] + c[1] + c[2];
-                let opacity = surfels.opacity(i);
-                if opacity < MIN_OPACITY || sum < MIN_BRIGHTNESS {
-                    return (u32::MAX, 0.0);
-                }
-                let s = surfels.scale(i);
-                let (x, y) = ((c[0] / sum / bin) as usize, (c[1] / sum / bin) as usize);
-                ((x.min(cells - 1) * cells + y.min(cells - 1)) as u32, opacity * s[0] * s[1])
+                let Some(chi) = observed_chromaticity(surfels, i) else { return (u32::MAX, 0.0) };
+                let (x, y) = ((chi[0] / bin) as usize, (chi[1] / bin) as usize);
+                ((x.min(cells - 1) * cells + y.min(cells - 1)) as u32, surfel_weight(surfels, i))
             })
             .unzip_into_vecs(&mut self.cell, &mut self.weight);
         let mut total_weight = 0.0f64;
@@ -151,6 +144,20 @@ fn box_filter<const N: usize>(grid: &[[f64; N]], cells: usize, out: &mut Vec<[f6
     }
 }
 
+/// The chromaticity c / Σc of surfel i's linear SH colour (DC part), or None when the surfel
+/// is too transparent or too dark to have a hue.
+fn observed_chromaticity(surfels: &Surfels, i: usize) -> Option<[f32; 3]> {
+    let c = surfels.sh[i][0].map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
+    let sum = c[0] + c[1] + c[2];
+    (surfels.opacity(i) >= MIN_OPACITY && sum >= MIN_BRIGHTNESS).then(|| c.map(|x| x / sum))
+}
+
+/// A surfel's share of what is seen: opacity × disk area.
+fn surfel_weight(surfels: &Surfels, i: usize) -> f32 {
+    let s = surfels.scale(i);
+    surfels.opacity(i) * s[0] * s[1]
+}
+
 /// A fresh albedo per surfel that starts with the hue it was seen with (`albedo_init_hue`).
 ///
 /// Why: from a grey start the light takes the scene's colours first (its learning rate is
@@ -165,18 +172,11 @@ fn box_filter<const N: usize>(grid: &[[f64; N]], cells: usize, out: &mut Vec<[f6
 /// albedo range: the brightest channel starts at `level`, as a grey surfel's (a saturated red
 /// starts at (level, low, low), not brighter in red than white is: with the mean level kept,
 /// cornell's red wall started at 2.6 × 0.3 in red, ended at the range's 0.8 against the true
-/// 0.63 and the light dimmed to match). Surfels too transparent
-/// or too dark to have a hue start grey at `level`.
+/// 0.63 and the light dimmed to match). Surfels too transparent or too dark to have a hue
+/// start grey at `level`.
 pub fn hued_albedo(surfels: &Surfels, level: f32, strength: f32) -> Vec<[f32; 3]> {
     let n = surfels.len();
-    let chroma: Vec<Option<[f32; 3]>> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let c = surfels.sh[i][0].map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
-            let sum = c[0] + c[1] + c[2];
-            (surfels.opacity(i) >= MIN_OPACITY && sum >= MIN_BRIGHTNESS).then(|| c.map(|x| x / sum))
-        })
-        .collect();
+    let chroma: Vec<Option<[f32; 3]>> = (0..n).into_par_iter().map(|i| observed_chromaticity(surfels, i)).collect();
     let light = light_chromaticity(surfels, &chroma);
     let grey = [level.clamp(ALBEDO_LO, ALBEDO_HI); 3];
     chroma
@@ -209,8 +209,7 @@ fn light_chromaticity(surfels: &Surfels, chroma: &[Option<[f32; 3]>]) -> [f32; 3
             if (0..3).any(|c| (chi[c] - light[c]).abs() > GREY_RADIUS) {
                 continue;
             }
-            let s = surfels.scale(i);
-            let w = (surfels.opacity(i) * s[0] * s[1]) as f64;
+            let w = surfel_weight(surfels, i) as f64;
             total += w;
             for c in 0..3 {
                 sum[c] += w * chi[c] as f64;

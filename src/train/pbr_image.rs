@@ -43,8 +43,9 @@ impl PbrImageLoss {
     }
 
     /// `features` holds `channels` values per pixel with the linear PBR colour first and
-    /// `alpha` the rendered opacity; `gt` is the ground truth over `bg`, `gt_alpha` its alpha. With `weight` > 0 the gradients are added into
-    /// `v_features` (the same layout) and `v_alpha` (through the background term).
+    /// `alpha` the rendered opacity; `gt` is the ground truth over `bg`, `gt_alpha` its alpha.
+    /// With `weight` > 0 the gradients are added into `v_features` (the same layout) and
+    /// `v_alpha` (through the background term).
     #[allow(clippy::too_many_arguments)]
     pub fn evaluate(
         &mut self,
@@ -129,6 +130,11 @@ mod tests {
         loss_over(clip, f, a, [0.2, 0.5, 0.9], gt, &vec![1.0; a.len()], wh)
     }
 
+    /// Ground-truth coverage for the finite-difference test: every fifth pixel an edge (0.5).
+    fn coverage(n: usize) -> Vec<f32> {
+        (0..n).map(|p| if p % 5 == 0 { 0.5 } else { 1.0 }).collect()
+    }
+
     fn loss_over(
         clip: bool,
         f: &[f32],
@@ -150,9 +156,13 @@ mod tests {
             let (f, a, gt, wh) = case(7);
             let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
             let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
-            l.evaluate(&f, 4, &a, [0.2, 0.5, 0.9], &gt, &vec![1.0; a.len()], wh, 1.0, &mut vf, &mut va);
+            let gt_alpha = coverage(a.len());
+            l.evaluate(&f, 4, &a, [0.2, 0.5, 0.9], &gt, &gt_alpha, wh, 1.0, &mut vf, &mut va);
+            let loss_of = |clip, f: &[f32], a: &[f32], gt: &[[f32; 3]], wh| {
+                loss_over(clip, f, a, [0.2, 0.5, 0.9], gt, &gt_alpha, wh)
+            };
             let eps = 2e-3f32;
-            let (mut checked, mut max_err, mut flat) = (0, 0.0f64, 0);
+            let (mut checked, mut max_err, mut flat, mut edge_clips) = (0, 0.0f64, 0, 0);
             for i in (0..f.len()).filter(|i| i % 4 != 3) {
                 let (mut fp, mut fm) = (f.clone(), f.clone());
                 fp[i] += eps;
@@ -166,9 +176,13 @@ mod tests {
                 let fd = 0.5 * (up + down);
                 max_err = max_err.max((fd - vf[i] as f64).abs() / fd.abs().max(1e-4));
                 flat += (fd == 0.0) as usize;
+                let (pixel, k) = (i / 4, i % 4);
+                edge_clips += (gt_alpha[pixel] < 1.0 && gt[pixel][k] >= SATURATED && fd != 0.0) as usize;
                 checked += 1;
             }
-            assert!(checked > f.len() / 2, "checked only {checked}");
+            assert!(checked >= f.len() / 2, "checked only {checked}");
+            // Saturated channels of partly covered pixels are compared as values (not clamped).
+            assert!(edge_clips > 0, "no partly covered saturated channel checked");
             // Clamped channels (flat loss) are among those checked only when clipping.
             assert_eq!(flat > 0, clip, "flat entries {flat}");
             assert!(max_err < 0.02, "clip {clip}: worst relative error {max_err}");

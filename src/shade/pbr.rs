@@ -650,7 +650,8 @@ mod tests {
             for i in 0..20 {
                 // The Lambert lobe sits under the specular layer: weighted by 1 − E(NoV, r).
                 let kd = brdf::diffuse_weight(dot(to64(case.normal[i]), to64(case.view[i])), case.rough[i] as f64).0;
-                assert!(kd < 1.0 && kd > 0.5, "{kd}");
+                // (Low at grazing views of smooth surfels: the specular layer reflects most there.)
+                assert!(kd < 1.0 && kd > 0.2, "{kd}");
                 for ch in 0..3 {
                     let lam = (d1[i][ch] - d0[i][ch]) as f64 / l[ch] as f64 / kd;
                     assert!((lam - want).abs() < 2e-3, "{floor:?}: {lam} vs {want}");

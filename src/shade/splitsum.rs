@@ -10,7 +10,7 @@
 //!   stays constant). Levels at r = 0, 0.2, 0.4, 0.6, 0.8, 1.0 (r = 0 is the env itself; the
 //!   others at 32×64, 16×32, 8×16, 8×16, 8×16 from the solid-angle box mips of the same size),
 //!   linear in r between levels.
-//! * (A, B): the GGX BRDF integration LUT of *our* BRDF (brdf.rs, Smith–Schlick k = (r+1)²/8,
+//! * (A, B): the GGX BRDF integration LUT of *our* BRDF (brdf.rs, height-correlated Smith,
 //!   clamps included), 32 × 32 over (NoV, r) nodes i/31, 1024 Hammersley samples of D·NoH per
 //!   node, computed once at start-up (`OnceLock`); bilinear with derivatives.
 //!

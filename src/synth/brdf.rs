@@ -2,7 +2,7 @@
 //!
 //!   f(ω_o, ω_i) = (1 − E(n·ω_o, r))·a/π + F·D·G / (4 (n·ω_i)(n·ω_o))
 //!   D = α² / (π ((n·h)²(α² − 1) + 1)²),  α = r²            (GGX)
-//!   G = G1(n·ω_i) G1(n·ω_o),  G1(c) = c / (c(1 − k) + k),  k = (r + 1)²/8   (Smith–Schlick)
+//!   G = 1 / (1 + Λ(n·ω_i) + Λ(n·ω_o)),  Λ(c) = (√(1 + α²(1/c² − 1)) − 1)/2   (height-correlated Smith)
 //!   F = f0 + (1 − f0)(1 − ω_o·h)⁵,  f0 = 0.04                 (Schlick)
 //!
 //! The diffuse lobe is weighted by 1 − E(n·ω_o, r), E the specular lobe's directional albedo
@@ -44,11 +44,15 @@ pub fn ggx_d(noh: f32, roughness: f32) -> f32 {
     a2 / (PI * d * d)
 }
 
-/// Smith–Schlick masking-shadowing with k = (r + 1)²/8.
+/// Height-correlated Smith visibility G/(4 (n·ω_i)(n·ω_o)) = 1 / (2 (NoL·A_v + NoV·A_l)),
+/// A_x = √(x²(1 − α²) + α²) (as shade/brdf.rs, in f32).
 #[inline]
-pub fn smith_schlick_g(nol: f32, nov: f32, roughness: f32) -> f32 {
-    let k = (roughness + 1.0) * (roughness + 1.0) / 8.0;
-    (nol / (nol * (1.0 - k) + k)) * (nov / (nov * (1.0 - k) + k))
+pub fn smith_visibility(nol: f32, nov: f32, roughness: f32) -> f32 {
+    let r = roughness.max(MIN_ROUGHNESS);
+    let a2 = (r * r) * (r * r);
+    let al = (nol * nol * (1.0 - a2) + a2).sqrt();
+    let av = (nov * nov * (1.0 - a2) + a2).sqrt();
+    0.5 / (nol * av + nov * al)
 }
 
 #[inline]
@@ -74,8 +78,7 @@ impl Bsdf {
         let h = (wo + wi).normalize();
         let noh = n.dot(h).clamp(0.0, 1.0);
         let voh = wo.dot(h).clamp(0.0, 1.0);
-        let spec =
-            schlick_f(voh) * ggx_d(noh, self.roughness) * smith_schlick_g(nol, nov, self.roughness) / (4.0 * nol * nov);
+        let spec = schlick_f(voh) * ggx_d(noh, self.roughness) * smith_visibility(nol, nov, self.roughness);
         diffuse + Vec3::splat(self.specular * spec)
     }
 

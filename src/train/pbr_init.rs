@@ -421,7 +421,9 @@ mod tests {
                         t.quats[i][c] += d;
                         objective(&cfg, &t, &l, &cam, &v_feat)
                     };
-                    check(v.quats[i][c], &f, 1e-3, &format!("quat [{i}][{c}]"));
+                    // 2e-4: the LUT is bilinear in NoV, and a 1e-3 step took surfel 1's NoV across
+                    // a node (a kink) once the LUT held the height-correlated Smith lobe.
+                    check(v.quats[i][c], &f, 2e-4, &format!("quat [{i}][{c}]"));
                 }
                 let f = |d: f32| {
                     let mut t = s.clone();

@@ -28,6 +28,7 @@ fn main() -> anyhow::Result<()> {
     if let Ok(v) = std::env::var("ENV_ROT") {
         scene.env = scene.env.rotated_about_up(v.parse()?);
     }
+    let pure: Option<f32> = std::env::var("PURE").ok().map(|v| v.parse()).transpose()?;
     if std::env::var("ENV_MIRROR").is_ok() {
         // u → 1 − u: the azimuth mirrored (y → −y).
         let (w, h) = (scene.env.width, scene.env.height);
@@ -90,8 +91,13 @@ fn main() -> anyhow::Result<()> {
             Vec::new()
         }
     };
-    let mut per_material = vec![[[0.0f64; 3]; 7]; mats.len()];
+    let mut per_material = vec![[[0.0f64; 3]; 10]; mats.len()];
     let mut material_pixels = vec![0usize; mats.len()];
+    // UNIFORM_ALBEDO=a: every surfel's albedo a (is the irradiance the same on both classes?).
+    if let Ok(v) = std::env::var("UNIFORM_ALBEDO") {
+        let a: f32 = v.parse()?;
+        scene.mats.albedo.iter_mut().for_each(|x| *x = [a; 3]);
+    }
     let albedo = scene.mats.albedo.clone();
     for view in ds.views(Split::Test).iter().take(nviews) {
         scene.mats.albedo.iter_mut().for_each(|a| *a = [0.0; 3]);
@@ -99,6 +105,11 @@ fn main() -> anyhow::Result<()> {
         scene.mats.albedo.clone_from(&albedo);
         let img = scene.render(&view.camera, [0.0; 3]);
         let gt_albedo = view.load_pass(radiogs::io::dataset::Pass::Albedo)?;
+        // Cycles' Diffuse Color pass (base × the diffuse layer's weight), where the data has it.
+        let diffcol = {
+            let path = view.folder.join("diffuse_color.png");
+            if path.exists() { Some(radiogs::io::image::read_rgba(&path)?) } else { None }
+        };
         let exr = view
             .pass_path(radiogs::io::dataset::Pass::Indirect)
             .with_context(|| format!("{}: no indirect.exr pass", view.camera.name))?;
@@ -112,11 +123,27 @@ fn main() -> anyhow::Result<()> {
             if gt.data[p * 4 + 3] < 0.99 || img.alpha[p] < 0.99 {
                 continue;
             }
-            n += 1.0;
             let material = gt_albedo.as_ref().filter(|_| !mats.is_empty()).map(|a| {
                 let base: [f32; 3] = std::array::from_fn(|k| srgb_to_linear(a.data[p * 4 + k]));
                 nearest(&mats, base)
             });
+            // PURE=tol: only pixels whose 3×3 neighbourhood's albedo is within tol (linear, any
+            // channel) of the material's base colour (colour edges, anti-aliased, left out).
+            if let (Some(tol), Some(m), Some(a)) = (pure, material, gt_albedo.as_ref()) {
+                let (w, h) = (a.width as isize, a.height as isize);
+                let (x, y) = ((p as isize) % w, (p as isize) / w);
+                let impure = (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy))).any(|(u, v)| {
+                    if u < 0 || v < 0 || u >= w || v >= h {
+                        return true;
+                    }
+                    let q = (v * w + u) as usize;
+                    (0..3).any(|k| (srgb_to_linear(a.data[q * 4 + k]) - mats[m].1[k]).abs() > tol)
+                });
+                if impure {
+                    continue;
+                }
+            }
+            n += 1.0;
             if let Some(m) = material {
                 material_pixels[m] += 1;
             }
@@ -142,6 +169,11 @@ fn main() -> anyhow::Result<()> {
                         a[k] += v;
                     }
                     sums[6][k] += srgb_to_linear(specular.pbr[p][k]) as f64;
+                    sums[8][k] += img.normal[p][k] as f64;
+                    sums[9][k] += if k == 0 { img.visibility[p] as f64 } else { img.alpha[p] as f64 };
+                    if let Some(d) = &diffcol {
+                        sums[7][k] += srgb_to_linear(d.data[p * 4 + k]) as f64;
+                    }
                 }
             }
         }
@@ -200,7 +232,18 @@ fn main() -> anyhow::Result<()> {
         println!("{nm:14} {:.4} {:.4} {:.4}", t[0], t[1], t[2]);
     }
     // Per material over every pixel of the views taken (no albedo.png: nothing to group by).
-    let names = ["total gt", "total ours", "direct gt", "direct ours", "indirect gt", "indirect ours", "specular ours"];
+    let names = [
+        "total gt",
+        "total ours",
+        "direct gt",
+        "direct ours",
+        "indirect gt",
+        "indirect ours",
+        "specular ours",
+        "diffcol gt",
+        "normal ours",
+        "vis, alpha ours",
+    ];
     for (m, (name, base)) in mats.iter().enumerate() {
         let count = material_pixels[m];
         if count == 0 {

@@ -174,6 +174,12 @@ fn surfel_weight(surfels: &Surfels, i: usize) -> f32 {
 /// cornell's red wall started at 2.6 × 0.3 in red, ended at the range's 0.8 against the true
 /// 0.63 and the light dimmed to match). Surfels too transparent or too dark to have a hue
 /// start grey at `level`.
+///
+/// Only hues clearly off the light's take part: the strength ramps from 0 at `GREY_RADIUS`
+/// (max channel distance from χ_L) to full at twice that. Why: a surfel's SH hue carries its
+/// noise, and a start sticks; on spheres' mildly blue floor (0.07 off) the full-strength
+/// start made the checker's albedo noisier (RMSE 0.097 vs 0.084) and relit 0.75 dB worse
+/// (BENCHMARKS.md session 37), while cornell's walls (0.2 off) need the hue.
 pub fn hued_albedo(surfels: &Surfels, level: f32, strength: f32) -> Vec<[f32; 3]> {
     let n = surfels.len();
     let chroma: Vec<Option<[f32; 3]>> = (0..n).into_par_iter().map(|i| observed_chromaticity(surfels, i)).collect();
@@ -184,8 +190,11 @@ pub fn hued_albedo(surfels: &Surfels, level: f32, strength: f32) -> Vec<[f32; 3]
         .map(|chi| match chi {
             None => grey,
             Some(chi) => {
+                // Near-grey surfels start grey, saturated ones with their hue (a ramp between).
+                let off = (0..3).map(|c| (chi[c] - light[c]).abs()).fold(0.0f32, f32::max);
+                let s = strength * ((off - GREY_RADIUS) / GREY_RADIUS).clamp(0.0, 1.0);
                 // A channel that is 0 (a pure primary) keeps a small floor so q stays finite.
-                let q = [0, 1, 2].map(|c| (chi[c].max(1e-3) / light[c]).powf(strength));
+                let q = [0, 1, 2].map(|c| (chi[c].max(1e-3) / light[c]).powf(s));
                 let q_max = q[0].max(q[1]).max(q[2]);
                 q.map(|x| (level * x / q_max).clamp(ALBEDO_LO, ALBEDO_HI))
             }
@@ -371,5 +380,41 @@ mod tests {
         assert!(hued_albedo(&tinted, 0.3, 0.0).iter().all(|a| a.iter().all(|&x| (x - 0.3).abs() < 1e-6)));
         let (full, half) = (a[4], hued_albedo(&tinted, 0.3, 0.5)[4]);
         assert!(half[0] == full[0] && half[1] > full[1] && half[1] < 0.3, "{half:?} {full:?}");
+    }
+
+    #[test]
+    fn only_clearly_tinted_surfels_take_their_hue() {
+        // Grey, faintly blue (0.04 off neutral), half-saturated orange (0.15 off) and red
+        // (0.36 off) surfels under a white light: the faint tint starts grey, the orange one
+        // with part of its hue, the red one with all of it.
+        let colours = [[0.5, 0.5, 0.5], [0.5, 0.5, 0.6], [0.7, 0.45, 0.3], [0.7, 0.1, 0.1]];
+        let mut s = Surfels::random_in_box(40, [0.0; 3], [1.0; 3], 5);
+        for i in 0..s.len() {
+            let c = colours[if i % 2 == 0 { 0 } else { 1 + (i / 2) % 3 }];
+            s.sh[i][0] = c.map(|x| rgb_to_dc(crate::io::image::linear_to_srgb(x)));
+            s.opacity_logits[i] = 3.0;
+            s.log_scales[i] = [-2.0, -2.0];
+        }
+        let full = |c: [f32; 3]| {
+            let sum = c[0] + c[1] + c[2];
+            let q = c.map(|x| x / sum * 3.0);
+            let m = q[0].max(q[1]).max(q[2]);
+            q.map(|x| 0.3 * x / m)
+        };
+        let a = hued_albedo(&s, 0.3, 1.0);
+        for i in 0..s.len() {
+            let kind = if i % 2 == 0 { 0 } else { 1 + (i / 2) % 3 };
+            match kind {
+                0 | 1 => assert!(a[i].iter().all(|&x| (x - 0.3).abs() < 1e-3), "{i} kind {kind}: {:?}", a[i]),
+                2 => {
+                    let f = full(colours[2]);
+                    assert!(a[i][2] < 0.3 - 0.01 && a[i][2] > f[2] + 0.01, "{i}: {:?} vs full {f:?}", a[i]);
+                }
+                _ => {
+                    let f = full(colours[3]);
+                    assert!((0..3).all(|c| (a[i][c] - f[c]).abs() < 0.02), "{i}: {:?} vs {f:?}", a[i]);
+                }
+            }
+        }
     }
 }

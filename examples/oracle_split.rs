@@ -28,7 +28,10 @@ fn main() -> anyhow::Result<()> {
     if let Ok(v) = std::env::var("ENV_ROT") {
         scene.env = scene.env.rotated_about_up(v.parse()?);
     }
-    let pure: Option<f32> = std::env::var("PURE").ok().map(|v| v.parse()).transpose()?;
+    let pure: Option<f32> = std::env::var("PURE")
+        .ok()
+        .map(|v| v.parse().with_context(|| format!("PURE={v}: not a tolerance")))
+        .transpose()?;
     if std::env::var("ENV_MIRROR").is_ok() {
         // u → 1 − u: the azimuth mirrored (y → −y).
         let (w, h) = (scene.env.width, scene.env.height);
@@ -95,7 +98,7 @@ fn main() -> anyhow::Result<()> {
     let mut material_pixels = vec![0usize; mats.len()];
     // UNIFORM_ALBEDO=a: every surfel's albedo a (is the irradiance the same on both classes?).
     if let Ok(v) = std::env::var("UNIFORM_ALBEDO") {
-        let a: f32 = v.parse()?;
+        let a: f32 = v.parse().with_context(|| format!("UNIFORM_ALBEDO={v}: not an albedo"))?;
         scene.mats.albedo.iter_mut().for_each(|x| *x = [a; 3]);
     }
     let albedo = scene.mats.albedo.clone();

@@ -239,6 +239,12 @@ mod tests {
                 // about n resolves poorly.)
                 let e =
                     crate::shade::brdf::directional_albedo_reference(th.to_radians().cos() as f64, r as f64, 0.04, 200);
+                // The specular lobe is the inverse model's (the same masking term): its albedo
+                // matches that quadrature where the sphere grid resolves the lobe (not r < 0.2,
+                // not 85°).
+                if r >= 0.2 && th <= 60.0 {
+                    assert!((es - e).abs() < 0.03 * e + 1e-3, "r {r} θ {th}: specular albedo {es} vs model {e}");
+                }
                 assert!(
                     (ef - es - 0.8 * (1.0 - e)).abs() < 0.01,
                     "r {r} θ {th}: diffuse part {} vs {}",

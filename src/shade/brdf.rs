@@ -28,7 +28,7 @@ use std::f64::consts::PI;
 pub const F0: f64 = 0.04;
 /// Lower clamp of every cosine.
 pub const COS_EPS: f64 = 1e-6;
-const ALPHA2_MIN: f64 = 1e-12;
+pub(crate) const ALPHA2_MIN: f64 = 1e-12;
 
 #[inline]
 fn clamp_cos(x: f64) -> (f64, f64) {
@@ -40,6 +40,18 @@ fn clamp_cos(x: f64) -> (f64, f64) {
     } else {
         (x, 1.0)
     }
+}
+
+/// x⁵ and x⁴ by explicit products (the lane kernels in `brdf_lanes.rs` repeat this order).
+#[inline]
+pub(crate) fn pow5(x: f64) -> f64 {
+    let x2 = x * x;
+    x2 * x2 * x
+}
+#[inline]
+pub(crate) fn pow4(x: f64) -> f64 {
+    let x2 = x * x;
+    x2 * x2
 }
 
 /// GGX normal distribution D(NoH) with α² given.
@@ -89,7 +101,7 @@ pub fn specular_f0(r: f64, n: V3, wo: V3, wi: V3, f0: f64) -> f64 {
     let t = terms(n, wo, wi);
     let a2 = alpha2(r);
     let d = ggx_d(t.noh, a2);
-    let f = f0 + (1.0 - f0) * (1.0 - t.voh).powi(5);
+    let f = f0 + (1.0 - f0) * pow5(1.0 - t.voh);
     f * d * smith_visibility(t.nol, t.nov, a2).0
 }
 
@@ -178,7 +190,7 @@ pub fn specular_with_backward(r: f64, n: V3, wo: V3, wi: V3, v_spec: f64) -> (f6
     let tt = t.noh * t.noh * (a2 - 1.0) + 1.0;
     let d = a2 / (PI * tt * tt);
     let om = 1.0 - t.voh;
-    let fr = F0 + (1.0 - F0) * om.powi(5);
+    let fr = F0 + (1.0 - F0) * pow5(om);
     let (vis, dvis_nol, dvis_nov, dvis_a2) = smith_visibility(t.nol, t.nov, a2);
     let spec = fr * d * vis;
     let vs = v_spec * spec;
@@ -188,7 +200,7 @@ pub fn specular_with_backward(r: f64, n: V3, wo: V3, wi: V3, v_spec: f64) -> (f6
     // Log-derivative of D (D > 0 always); α² is constant below its floor.
     let v_a2 = if r4 > ALPHA2_MIN { vs * (1.0 / a2 - 2.0 * t.noh * t.noh / tt) + v_fd * dvis_a2 } else { 0.0 };
     let v_noh = vs * (-4.0 * t.noh * (a2 - 1.0) / tt) * t.dnoh;
-    let v_voh = v_spec * d * vis * (-5.0 * (1.0 - F0) * om.powi(4)) * t.dvoh;
+    let v_voh = v_spec * d * vis * (-5.0 * (1.0 - F0) * pow4(om)) * t.dvoh;
     let v_roughness = v_a2 * 4.0 * r * r * r;
 
     let mut v_n = add(scale(wi, v_nol), scale(wo, v_nov));

@@ -8,6 +8,7 @@
 //! for scalar code and lets the gradient checks run tight); storage stays f32.
 
 pub mod brdf;
+pub mod brdf_lanes;
 pub mod incident;
 pub mod pbr;
 pub mod sampling;

@@ -15,6 +15,7 @@
 //! (nothing saved) and accumulates the env-texel gradient in one buffer per rayon job, summed
 //! at the end.
 
+use super::brdf_lanes::{self, Dirs8, LANES};
 use super::{V3, add, brdf, dot, scale, to32, to64};
 use crate::envmap::{EnvMap, PackedFootprint};
 use crate::error::{Error, Result};
@@ -158,27 +159,47 @@ pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
     let footprints = inp.footprints_for(env);
     // The Lambert lobe under the specular layer (brdf.rs): one weight per surfel and view.
     let lambert = scale(a, brdf::diffuse_weight(dot(n, wo), r).0 * std::f64::consts::FRAC_1_PI);
-    for k in i * s..(i + 1) * s {
-        let d = to64(inp.dirs[k]);
-        let c = dot(n, d);
-        if c <= 0.0 {
-            continue;
-        }
-        let spec = if inp.specular { brdf::specular(r, n, wo, d) } else { 0.0 };
-        let f: V3 = std::array::from_fn(|ch| lambert[ch] + spec);
-        let le = to64(match footprints {
-            Some(f) => env.lookup_packed(f[k]),
-            None => env.lookup(inp.dirs[k]),
-        });
-        let v = inp.visibility[k] as f64;
-        let li = to64(inp.indirect[k]);
-        let wc = inp.w(k) * c;
-        for ch in 0..3 {
-            direct[ch] += wc * f[ch] * v * le[ch];
-            indirect[ch] += wc * f[ch] * li[ch];
+    // Blocks of eight samples: the specular lobe of a block in one lane kernel.
+    for k0 in (i * s..(i + 1) * s).step_by(LANES) {
+        let len = (i * s + s - k0).min(LANES);
+        let spec8 =
+            if inp.specular { brdf_lanes::specular(r, n, wo, &block_dirs(inp, k0, len, n)) } else { [0.0; LANES] };
+        for (j, &spec) in spec8.iter().enumerate().take(len) {
+            let k = k0 + j;
+            let d = to64(inp.dirs[k]);
+            let c = dot(n, d);
+            if c <= 0.0 {
+                continue;
+            }
+            let f: V3 = std::array::from_fn(|ch| lambert[ch] + spec);
+            let le = to64(match footprints {
+                Some(f) => env.lookup_packed(f[k]),
+                None => env.lookup(inp.dirs[k]),
+            });
+            let v = inp.visibility[k] as f64;
+            let li = to64(inp.indirect[k]);
+            let wc = inp.w(k) * c;
+            for ch in 0..3 {
+                direct[ch] += wc * f[ch] * v * le[ch];
+                indirect[ch] += wc * f[ch] * li[ch];
+            }
         }
     }
     (direct, indirect)
+}
+
+/// The directions of samples k0..k0 + len as lanes; lanes past `len` get `fill` (a harmless
+/// direction whose result is not used).
+#[inline]
+fn block_dirs(inp: &PbrInputs, k0: usize, len: usize, fill: V3) -> Dirs8 {
+    let mut dirs = [[0.0; LANES]; 3];
+    for j in 0..LANES {
+        let d = if j < len { to64(inp.dirs[k0 + j]) } else { fill };
+        for c in 0..3 {
+            dirs[c][j] = d[c];
+        }
+    }
+    dirs
 }
 
 /// Forward: writes L_direct and L_indirect per surfel (L_pbr = their sum).
@@ -217,57 +238,87 @@ fn backward_one(
     let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI);
     // Σ_s v_f over the samples: the Lambert lobe's gradient, chained once per surfel below.
     let mut v_lambert = [0.0; 3];
-    for (j, k) in (i * s..(i + 1) * s).enumerate() {
-        let d = to64(inp.dirs[k]);
-        let c = dot(n, d);
-        if c <= 0.0 {
-            v_vis[j] = 0.0;
-            v_lind[j] = [0.0; 3];
-            continue;
-        }
-        // One footprint for the lookup and its backward (the atan2/acos are the costly part).
-        let fp = match footprints {
-            Some(f) => env.unpack(f[k]),
-            None => env.footprint(inp.dirs[k]),
-        };
-        let mut le = [0.0f64; 3];
-        for q in 0..4 {
-            let t = env.texels[fp.index[q]];
-            for ch in 0..3 {
-                le[ch] += fp.weight[q] as f64 * t[ch] as f64;
+    for k0 in (i * s..(i + 1) * s).step_by(LANES) {
+        let len = (i * s + s - k0).min(LANES);
+        // Per lane: everything the lobe's upstream gradient needs (v_f = wc·g does not depend
+        // on f), then the lobe and its backward for the block, then the sums in sample order.
+        let mut live = [false; LANES];
+        let mut fps = [crate::envmap::Footprint { index: [0; 4], weight: [0.0; 4] }; LANES];
+        let mut les = [[0.0f64; 3]; LANES];
+        let mut gs = [[0.0f64; 3]; LANES];
+        let mut v_spec = [0.0f64; LANES];
+        for j in 0..len {
+            let k = k0 + j;
+            let jj = k - i * s;
+            let d = to64(inp.dirs[k]);
+            let c = dot(n, d);
+            if c <= 0.0 {
+                v_vis[jj] = 0.0;
+                v_lind[jj] = [0.0; 3];
+                continue;
             }
-        }
-        let v = inp.visibility[k] as f64;
-        let li = to64(inp.indirect[k]);
-        let w = inp.w(k);
-        let wc = w * c;
-        // L_s = V·Le ⊙ v_dir + L_ind ⊙ v_ind (per channel, the incident side seen by v).
-        let g: V3 = std::array::from_fn(|ch| v_dir[ch] * v * le[ch] + v_ind[ch] * li[ch]);
-        // ∂/∂f (then the BRDF backward), ∂/∂c (→ n).
-        // The BRDF value and backward in one pass (v_f = wc·g does not depend on f).
-        let v_f = scale(g, wc);
-        let spec = if inp.specular {
-            let (spec, bg) = brdf::specular_with_backward(r, n, wo, d, v_f[0] + v_f[1] + v_f[2]);
-            vr += bg.v_roughness;
-            vn = add(vn, bg.v_n);
-            vwo = add(vwo, bg.v_wo);
-            spec
-        } else {
-            0.0
-        };
-        let f: V3 = std::array::from_fn(|ch| lambert[ch] + spec);
-        v_lambert = add(v_lambert, v_f);
-        let v_c = w * dot(f, g);
-        vn = add(vn, scale(d, v_c));
-        // Incident side.
-        v_vis[j] = (wc * (f[0] * le[0] * v_dir[0] + f[1] * le[1] * v_dir[1] + f[2] * le[2] * v_dir[2])) as f32;
-        v_lind[j] = to32(std::array::from_fn(|ch| wc * f[ch] * v_ind[ch]));
-        if !detach.env {
-            let v_le: [f64; 3] = std::array::from_fn(|ch| wc * f[ch] * v * v_dir[ch]);
+            live[j] = true;
+            // One footprint for the lookup and its backward (the atan2/acos are the costly part).
+            let fp = match footprints {
+                Some(f) => env.unpack(f[k]),
+                None => env.footprint(inp.dirs[k]),
+            };
+            let mut le = [0.0f64; 3];
             for q in 0..4 {
-                let dst = &mut v_env[fp.index[q]];
+                let t = env.texels[fp.index[q]];
                 for ch in 0..3 {
-                    dst[ch] += (fp.weight[q] as f64 * v_le[ch]) as f32;
+                    le[ch] += fp.weight[q] as f64 * t[ch] as f64;
+                }
+            }
+            let v = inp.visibility[k] as f64;
+            let li = to64(inp.indirect[k]);
+            // L_s = V·Le ⊙ v_dir + L_ind ⊙ v_ind (per channel, the incident side seen by v).
+            let g: V3 = std::array::from_fn(|ch| v_dir[ch] * v * le[ch] + v_ind[ch] * li[ch]);
+            let v_f = scale(g, inp.w(k) * c);
+            v_spec[j] = v_f[0] + v_f[1] + v_f[2];
+            (fps[j], les[j], gs[j]) = (fp, le, g);
+        }
+        let lobe = if inp.specular {
+            Some(brdf_lanes::specular_with_backward(r, n, wo, &block_dirs(inp, k0, len, n), &v_spec))
+        } else {
+            None
+        };
+        for j in 0..len {
+            if !live[j] {
+                continue;
+            }
+            let k = k0 + j;
+            let jj = k - i * s;
+            let d = to64(inp.dirs[k]);
+            let c = dot(n, d);
+            let (fp, le, g) = (&fps[j], les[j], gs[j]);
+            let v = inp.visibility[k] as f64;
+            let w = inp.w(k);
+            let wc = w * c;
+            let v_f = scale(g, wc);
+            let spec = match &lobe {
+                Some(l) => {
+                    vr += l.v_roughness[j];
+                    vn = add(vn, [l.v_n[0][j], l.v_n[1][j], l.v_n[2][j]]);
+                    vwo = add(vwo, [l.v_wo[0][j], l.v_wo[1][j], l.v_wo[2][j]]);
+                    l.spec[j]
+                }
+                None => 0.0,
+            };
+            let f: V3 = std::array::from_fn(|ch| lambert[ch] + spec);
+            v_lambert = add(v_lambert, v_f);
+            let v_c = w * dot(f, g);
+            vn = add(vn, scale(d, v_c));
+            // Incident side.
+            v_vis[jj] = (wc * (f[0] * le[0] * v_dir[0] + f[1] * le[1] * v_dir[1] + f[2] * le[2] * v_dir[2])) as f32;
+            v_lind[jj] = to32(std::array::from_fn(|ch| wc * f[ch] * v_ind[ch]));
+            if !detach.env {
+                let v_le: [f64; 3] = std::array::from_fn(|ch| wc * f[ch] * v * v_dir[ch]);
+                for q in 0..4 {
+                    let dst = &mut v_env[fp.index[q]];
+                    for ch in 0..3 {
+                        dst[ch] += (fp.weight[q] as f64 * v_le[ch]) as f32;
+                    }
                 }
             }
         }
@@ -447,6 +498,12 @@ pub fn shade_subset_backward(
             |(mut acc, mut vvis, mut vind), (c, (((va, vr), vn), vv))| {
                 for j in 0..va.len() {
                     let k = c * CHUNK + j;
+                    // No upstream gradient (e.g. a surfel the rasteriser did not reach): every
+                    // gradient of the entry is zero.
+                    if v_direct[k] == [0.0; 3] && v_indirect[k] == [0.0; 3] {
+                        (va[j], vr[j], vn[j], vv[j]) = ([0.0; 3], 0.0, [0.0; 3], [0.0; 3]);
+                        continue;
+                    }
                     let (ga, gr, gn, gv) = backward_one(
                         inp,
                         env,

@@ -12,6 +12,7 @@
 
 use super::consistency::{encode, encode_derivative};
 use crate::loss::{self, Ssim};
+use rayon::prelude::*;
 
 /// Reused buffers.
 #[derive(Default)]
@@ -62,13 +63,16 @@ impl PbrImageLoss {
     ) -> PbrImageTerms {
         let np = w * h;
         let bg_lin = bg.map(crate::io::image::srgb_to_linear);
-        self.linear.clear();
-        self.linear.extend((0..np).map(|p| {
-            let f = &features[p * channels..p * channels + 3];
-            [0, 1, 2].map(|k| f[k] + (1.0 - alpha[p]) * bg_lin[k])
-        }));
-        self.srgb.clear();
-        self.srgb.extend(self.linear.iter().map(|c| c.map(encode)));
+        // Per pixel and independent (the sRGB encode's powf is the cost): rayon over pixels.
+        self.linear.resize(np, [0.0; 3]);
+        self.srgb.resize(np, [0.0; 3]);
+        self.linear.par_iter_mut().zip(self.srgb.par_iter_mut()).enumerate().with_min_len(1024).for_each(
+            |(p, (lin, srgb))| {
+                let f = &features[p * channels..p * channels + 3];
+                *lin = [0, 1, 2].map(|k| f[k] + (1.0 - alpha[p]) * bg_lin[k]);
+                *srgb = lin.map(encode);
+            },
+        );
         self.clipped.clear();
         self.clipped.resize(np, 0);
         if self.clip_saturated {
@@ -93,18 +97,24 @@ impl PbrImageLoss {
         self.v_srgb.resize(np, [0.0; 3]);
         terms.l1 = loss::l1_rgb(&self.srgb, gt, None, weight, &mut self.v_srgb);
         terms.dssim = self.ssim.dssim_loss(&self.srgb, gt, w, h, weight * 0.2, &mut self.v_srgb);
-        for p in 0..np {
-            let mut va = 0.0;
-            for k in 0..3 {
-                if self.clipped[p] & (1 << k) != 0 {
-                    continue;
+        let (clipped, v_srgb, linear) = (&self.clipped, &self.v_srgb, &self.linear);
+        v_features[..np * channels]
+            .par_chunks_mut(channels)
+            .zip(v_alpha[..np].par_iter_mut())
+            .enumerate()
+            .with_min_len(1024)
+            .for_each(|(p, (vf, v_a))| {
+                let mut va = 0.0;
+                for k in 0..3 {
+                    if clipped[p] & (1 << k) != 0 {
+                        continue;
+                    }
+                    let v = v_srgb[p][k] * encode_derivative(linear[p][k]);
+                    vf[k] += v;
+                    va -= v * bg_lin[k];
                 }
-                let v = self.v_srgb[p][k] * encode_derivative(self.linear[p][k]);
-                v_features[p * channels + k] += v;
-                va -= v * bg_lin[k];
-            }
-            v_alpha[p] += va;
-        }
+                *v_a += va;
+            });
         terms
     }
 }

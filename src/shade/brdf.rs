@@ -19,7 +19,9 @@
 //! also makes the lobe energy-conserving: a white surface reflects exactly 1 − E + E = 1.
 //! DESIGN §1 has plain a/π; README lists the difference.
 //!
-//! Scalar, per sample; nothing is saved for the backward (it recomputes the few terms).
+//! Scalar, per sample; nothing is saved for the backward (it recomputes the few terms). The
+//! shading runs the lobe eight samples at a time through `brdf_lanes.rs`, which mirrors this
+//! code operation for operation; this file is its reference.
 
 use super::{V3, add, dot, scale};
 use std::f64::consts::PI;

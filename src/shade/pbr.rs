@@ -10,8 +10,9 @@
 //! importance sampling. The directions, visibilities and indirect radiances are inputs (the
 //! per-surfel cache or the tracer's output): the gradient to n does not move the directions.
 //!
-//! Parallel decomposition: rayon over chunks of surfels; each surfel's S samples run in one
-//! sequential loop (f64 scalars, no allocation). The backward recomputes the forward terms
+//! Parallel decomposition: rayon over chunks of surfels; each surfel's S samples run in blocks
+//! of eight (f64, no allocation): the env lookups and sums per sample, the specular lobe of a
+//! block in one `brdf_lanes` call (bitwise the scalar lobe). The backward recomputes the forward terms
 //! (nothing saved) and accumulates the env-texel gradient in one buffer per rayon job, summed
 //! at the end.
 

@@ -33,7 +33,7 @@ pub const COS_EPS: f64 = 1e-6;
 pub(crate) const ALPHA2_MIN: f64 = 1e-12;
 
 #[inline]
-fn clamp_cos(x: f64) -> (f64, f64) {
+pub(crate) fn clamp_cos(x: f64) -> (f64, f64) {
     // Returns the clamped value and the derivative of the clamp (1 inside, 0 outside).
     if x < COS_EPS {
         (COS_EPS, 0.0)

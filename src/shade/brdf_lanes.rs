@@ -54,14 +54,7 @@ struct Surfel {
 impl Surfel {
     #[inline]
     fn new(r: f64, n: V3, wo: V3) -> Surfel {
-        let nov_raw = n[0] * wo[0] + n[1] * wo[1] + n[2] * wo[2];
-        let (nov, dnov) = if nov_raw < COS_EPS {
-            (COS_EPS, 0.0)
-        } else if nov_raw > 1.0 {
-            (1.0, 0.0)
-        } else {
-            (nov_raw, 1.0)
-        };
+        let (nov, dnov) = super::brdf::clamp_cos(super::dot(n, wo));
         let r4 = r * r * r * r;
         Surfel {
             n: n.map(splat),
@@ -85,7 +78,7 @@ struct Terms {
     dvoh: f64x8,
     h: [f64x8; 3],
     s_len: f64x8,
-    /// s_len > 1e-12 (a half vector exists).
+    /// Lanes where s_len > 1e-12 (a half vector exists).
     live: f64x8,
 }
 
@@ -100,7 +93,7 @@ fn terms(sf: &Surfel, wi: [f64x8; 3]) -> Terms {
     let (noh, dnoh) = clamp_cos(dot3(sf.n, h));
     let (voh, dvoh) = clamp_cos(dot3(sf.wo, h));
     let live = live_mask.select(splat(1.0), splat(0.0));
-    Terms { nol, noh, voh, dnol, dnoh: dnoh * live, dvoh: dvoh * live, h, s_len, live }
+    Terms { nol, noh, voh, dnol, dnoh: dnoh * live, dvoh: dvoh * live, h, s_len, live: live_mask }
 }
 
 /// `brdf::smith_visibility`: (V, ∂V/∂NoL, ∂V/∂NoV, ∂V/∂α²).
@@ -193,10 +186,9 @@ pub fn specular_with_backward(r: f64, n: V3, wo: V3, wi: &Dirs8, v_spec: &[f64; 
     let v_h: [f64x8; 3] = std::array::from_fn(|k| n[k] * v_noh + wo[k] * v_voh);
     let hv = dot3(h, v_h);
     let inv = one / t.s_len;
-    let live = t.live.simd_gt(splat(0.5));
     for k in 0..3 {
         let v_s = (v_h[k] + h[k] * -hv) * inv;
-        v_wo[k] = live.select(v_wo[k] + v_s, v_wo[k]);
+        v_wo[k] = t.live.select(v_wo[k] + v_s, v_wo[k]);
     }
     SpecularLanes {
         spec: spec.to_array(),

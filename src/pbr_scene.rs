@@ -8,12 +8,14 @@ use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::raster::{self, Features, Outputs, RasterSettings};
 use crate::shade::incident::IncidentCache;
+use crate::shade::incident::RayStart;
 use crate::shade::splitsum::SplitSum;
+use crate::shade::traced_specular::TracedSpecular;
 use crate::surfels::Surfels;
 use crate::trace::Tracer;
 use crate::train::config::Specular;
 use crate::train::consistency::encode;
-use crate::train::inverse::{SurfelShading, VIEW_CHANNELS, trace_settings};
+use crate::train::inverse::{SpecularLobe, SurfelShading, VIEW_CHANNELS, trace_settings};
 use crate::train::material::MaterialView;
 use std::path::Path;
 
@@ -30,7 +32,17 @@ pub struct PbrScene {
     pub sample_factor: usize,
     /// How the PBR colour gets its specular lobe (the training config's `specular`).
     pub specular: Specular,
+    /// Where incident rays start (the cache's, and a traced specular lobe's).
+    pub ray_start: RayStart,
+    /// Rays per surfel of a traced specular lobe, and their seed: a picture is one sample of
+    /// the estimate where training averages many, so renders draw [`RENDER_RAYS_FACTOR`] × the
+    /// training config's `specular_rays`.
+    pub specular_rays: usize,
+    pub seed: u64,
 }
+
+/// A render's traced specular rays per training ray (see [`PbrScene::specular_rays`]).
+pub const RENDER_RAYS_FACTOR: usize = 4;
 
 /// Straight-alpha pictures of one view (colours over `bg` where they are composited).
 #[derive(Clone, Debug, Default)]
@@ -76,6 +88,9 @@ impl PbrScene {
             filter_inv_square: crate::raster::filter_inv_square_2dgs(),
             sample_factor,
             specular: Specular::Mc,
+            ray_start: start,
+            specular_rays: RENDER_RAYS_FACTOR * 2,
+            seed,
         }
     }
 
@@ -117,11 +132,15 @@ impl PbrScene {
                 filter_inv_square,
                 sample_factor,
                 specular,
+                ray_start: start,
+                specular_rays: RENDER_RAYS_FACTOR * cfg.specular_rays,
+                seed: cfg.seed,
             }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
         let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
         scene.specular = cfg.specular;
+        scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;
         scene.filter_inv_square = cfg.filter_inv_square;
         Ok(Some(scene))
     }
@@ -137,7 +156,7 @@ impl PbrScene {
                 };
                 Some(SplitSum::new(&env).expect("H × 2H, H a multiple of 8"))
             }
-            Specular::Mc => None,
+            Specular::Mc | Specular::Traced => None,
         }
     }
 
@@ -150,7 +169,20 @@ impl PbrScene {
     pub fn render_with(&self, cam: &Camera, bg: [f32; 3], split_sum: Option<&SplitSum>) -> PbrImages {
         let mut shading = SurfelShading::default();
         let env = self.env.box_downsample(self.sample_factor);
-        shading.compute(&self.surfels, &self.mats, &self.cache, &env, split_sum, cam, VIEW_CHANNELS);
+        let tracer = (self.specular == Specular::Traced).then(|| Tracer::build(&self.surfels, &trace_settings()));
+        let lobe = match (split_sum, &tracer) {
+            (Some(ss), _) => SpecularLobe::SplitSum(ss),
+            (None, Some(tracer)) => SpecularLobe::Traced(TracedSpecular {
+                tracer,
+                surfels: &self.surfels,
+                env: &self.env,
+                start: self.ray_start,
+                rays: self.specular_rays,
+                seed: self.seed,
+            }),
+            (None, None) => SpecularLobe::Cached,
+        };
+        shading.compute(&self.surfels, &self.mats, &self.cache, &env, lobe, cam, VIEW_CHANNELS);
         self.render_features(cam, bg, &shading.features)
     }
 

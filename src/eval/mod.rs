@@ -422,6 +422,9 @@ fn eval_relight(
                     filter_inv_square: cfg.filter_inv_square,
                     sample_factor: crate::train::inverse::sample_factor(cfg),
                     specular: cfg.specular,
+                    ray_start: start,
+                    specular_rays: crate::pbr_scene::RENDER_RAYS_FACTOR * cfg.specular_rays,
+                    seed: cfg.seed,
                 });
             } else {
                 let settings = FinetuneSettings {

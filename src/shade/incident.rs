@@ -362,6 +362,7 @@ impl IncidentCache {
             weight: self.weight,
             sample_weights: None,
             specular: true,
+            lambert: true,
             footprints: (self.footprints.len() == self.dirs.len()).then_some(CachedFootprints {
                 data: &self.footprints,
                 width: self.footprint_size.0,

@@ -13,6 +13,7 @@ pub mod incident;
 pub mod pbr;
 pub mod sampling;
 pub mod splitsum;
+pub mod traced_specular;
 
 pub(crate) type V3 = [f64; 3];
 

@@ -206,6 +206,7 @@ pub fn radiometric_consistency(
         weight: sc.weight,
         sample_weights: None,
         specular: true,
+        lambert: true,
         footprints: None,
     };
     sc.direct.resize(m, [0.0; 3]);

@@ -13,14 +13,16 @@
 //! albedo (clamped to its range) and the env. s = 1 is always evaluated, so the step never
 //! raises the evaluated loss. Not in the published method (0 = off).
 
-use super::inverse::{InverseState, SurfelShading, TRAIN_CHANNELS, sample_factor};
+use super::inverse::{InverseState, SpecularLobe, SurfelShading, TRAIN_CHANNELS, sample_factor};
 use super::material::MaterialView;
 use super::nvs::TrainImages;
 use super::pbr_image::PbrImageLoss;
 use crate::envmap::EnvMap;
 use crate::raster::{self, Features, Outputs, RasterSettings};
 use crate::shade::splitsum::SplitSum;
+use crate::shade::traced_specular::TracedSpecular;
 use crate::surfels::{ALBEDO_HI, ALBEDO_LO, albedo_to_logit};
+use crate::trace::Tracer;
 use crate::train::config::{Specular, TrainConfig};
 
 /// Scales searched: s in [1/4, 4].
@@ -59,7 +61,11 @@ struct Evaluator<'a> {
     base: MaterialView,
     mats: MaterialView,
     env: EnvMap,
-    shading: SurfelShading,
+    /// One per view: with a traced specular lobe, each view's samples are traced once per fit
+    /// and shaded again under every scaled light.
+    shading: Vec<SurfelShading>,
+    /// The tracer of a traced specular lobe (none otherwise).
+    tracer: Option<Tracer>,
     loss: PbrImageLoss,
     gt: Vec<[f32; 3]>,
     v_features: Vec<f32>,
@@ -80,22 +86,30 @@ impl Evaluator<'_> {
         let env_s = env.box_downsample(sample_factor(self.cfg));
         let split_sum = match self.cfg.specular {
             Specular::SplitSum => Some(SplitSum::new(&env).expect("the learned env is a valid map")),
-            Specular::Mc => None,
+            Specular::Mc | Specular::Traced => None,
         };
         // A black background: the GT is composited over it too, so only the object counts.
         let bg = [0.0f32; 3];
         let mut total = 0.0f64;
-        for &v in &self.views {
+        let first = self.evaluations == 1;
+        for (slot, &v) in self.views.iter().enumerate() {
             let cam = &self.images.cameras[v];
-            self.shading.compute(
-                &self.state.surfels,
-                &self.mats,
-                &self.state.cache,
-                &env_s,
-                split_sum.as_ref(),
-                cam,
-                TRAIN_CHANNELS,
-            );
+            let lobe = match (&split_sum, &self.tracer) {
+                (Some(ss), _) => SpecularLobe::SplitSum(ss),
+                (None, Some(tracer)) if first => SpecularLobe::Traced(TracedSpecular {
+                    tracer,
+                    surfels: &self.state.surfels,
+                    env: &env,
+                    start: self.cfg.ray_start(self.state.extent),
+                    rays: self.cfg.specular_rays,
+                    // Fixed per fit (and per view): every scale sees the same samples.
+                    seed: self.cfg.seed ^ 0x6a09_e667 ^ (self.state.iteration as u64) << 8 ^ v as u64,
+                }),
+                (None, Some(_)) => SpecularLobe::TracedAgain(&env),
+                (None, None) => SpecularLobe::Cached,
+            };
+            let shading = &mut self.shading[slot];
+            shading.compute(&self.state.surfels, &self.mats, &self.state.cache, &env_s, lobe, cam, TRAIN_CHANNELS);
             let settings = RasterSettings {
                 window: self.cfg.window,
                 filter_inv_square: self.cfg.filter_inv_square,
@@ -104,7 +118,7 @@ impl Evaluator<'_> {
                 outputs: Outputs { colour: false, ..Outputs::none() },
                 ..RasterSettings::default()
             };
-            let features = Features { data: &self.shading.features, channels: TRAIN_CHANNELS };
+            let features = Features { data: &shading.features, channels: TRAIN_CHANNELS };
             let (out, _) = raster::render(&self.state.surfels, cam, &settings, Some(features));
             let (rgb, alpha) = (&self.images.rgb[v], &self.images.alpha[v]);
             self.gt.clear();
@@ -148,7 +162,9 @@ pub fn fit(cfg: &TrainConfig, state: &InverseState, images: &TrainImages) -> Gau
         mats: base.clone(),
         base,
         env: state.env(),
-        shading: SurfelShading::default(),
+        shading: (0..count).map(|_| SurfelShading::default()).collect(),
+        tracer: (cfg.specular == Specular::Traced)
+            .then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings())),
         loss: PbrImageLoss::clipping(cfg.clip_saturated),
         gt: Vec::new(),
         v_features: Vec::new(),
@@ -297,6 +313,7 @@ mod tests {
                 weight: 2.0 * std::f32::consts::PI / samples as f32,
                 sample_weights: None,
                 specular,
+                lambert: true,
                 footprints: None,
             };
             let (mut d, mut i) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);

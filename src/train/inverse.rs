@@ -40,6 +40,7 @@ use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
 use crate::shade::incident::IncidentCache;
 use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
 use crate::shade::splitsum::{SplitSum, SplitSumGrads};
+use crate::shade::traced_specular::{SpecularSamples, TracedSpecular};
 use crate::surfels::{Surfels, albedo_to_logit, logit};
 use crate::trace::{TraceSettings, Tracer};
 use crate::train::checkpoint::Checkpoint;
@@ -230,6 +231,30 @@ impl InverseState {
     }
 }
 
+/// Where the PBR colour's specular lobe comes from (`--specular`).
+#[derive(Clone, Copy)]
+pub enum SpecularLobe<'a> {
+    /// In the Monte Carlo sum over the cached directions (the published method).
+    Cached,
+    /// The prefiltered env ([`SplitSum::specular_lobe`]).
+    SplitSum(&'a SplitSum),
+    /// Traced for the view by GGX importance sampling (`shade::traced_specular`).
+    Traced(TracedSpecular<'a>),
+    /// The samples the previous `Traced` call of the same [`SurfelShading`] traced (same
+    /// camera, surfels, normals and roughness), shaded again under this full-resolution env
+    /// (the gauge's scaled lights).
+    TracedAgain(&'a EnvMap),
+}
+
+impl<'a> SpecularLobe<'a> {
+    fn split_sum(&self) -> Option<&'a SplitSum> {
+        match self {
+            SpecularLobe::SplitSum(ss) => Some(ss),
+            _ => None,
+        }
+    }
+}
+
 /// Per-surfel features for one camera: which surfels are shaded (facing the camera, centre
 /// in front of it), their view directions, and the feature rows (N × channels; surfels not
 /// shaded get zero PBR but keep their material channels).
@@ -244,13 +269,19 @@ pub struct SurfelShading {
     /// visibility) and fill radiance (cached mean indirect light).
     pub spec_occlusion: Vec<f32>,
     pub spec_fill: Vec<[f32; 3]>,
+    /// With a traced specular lobe: its samples (kept for the backward) and its env and
+    /// indirect parts per active surfel.
+    pub traced: SpecularSamples,
+    traced_direct: Vec<[f32; 3]>,
+    traced_indirect: Vec<[f32; 3]>,
 }
 
 impl SurfelShading {
-    /// Shade for `camera` with `channels` = [`TRAIN_CHANNELS`] or [`VIEW_CHANNELS`]. With
-    /// `split_sum`, the Monte Carlo sum over the cache is Lambert only and the specular lobe
-    /// comes from the prefiltered env ([`SplitSum::specular_lobe`]); its env part counts as
-    /// direct light, its fill part as indirect.
+    /// Shade for `camera` with `channels` = [`TRAIN_CHANNELS`] or [`VIEW_CHANNELS`]. Unless
+    /// `lobe` is [`SpecularLobe::Cached`], the Monte Carlo sum over the cache is Lambert only
+    /// and the specular lobe comes from the prefiltered env ([`SplitSum::specular_lobe`]: its
+    /// env part counts as direct light, its fill part as indirect) or from rays traced for
+    /// this view (their env part direct, their hits indirect).
     #[allow(clippy::too_many_arguments)]
     pub fn compute(
         &mut self,
@@ -258,10 +289,11 @@ impl SurfelShading {
         mats: &MaterialView,
         cache: &IncidentCache,
         env: &EnvMap,
-        split_sum: Option<&SplitSum>,
+        lobe: SpecularLobe,
         camera: &Camera,
         channels: usize,
     ) {
+        let split_sum = lobe.split_sum();
         let n = surfels.len();
         let eye = camera.position().to_array();
         self.view.resize(n, [0.0; 3]);
@@ -280,8 +312,30 @@ impl SurfelShading {
         self.direct.resize(m, [0.0; 3]);
         self.indirect.resize(m, [0.0; 3]);
         let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &self.view);
-        inp.specular = split_sum.is_none();
+        inp.specular = matches!(lobe, SpecularLobe::Cached);
         shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
+        let traced_env = match &lobe {
+            SpecularLobe::Traced(spec) => {
+                self.traced.trace(spec, &self.active, &mats.roughness, &mats.normal, &self.view);
+                Some(spec.env)
+            }
+            SpecularLobe::TracedAgain(env) => {
+                assert_eq!(self.traced.len(), m, "TracedAgain needs the samples of the same view");
+                Some(*env)
+            }
+            _ => None,
+        };
+        if let Some(env_full) = traced_env {
+            self.traced_direct.resize(m, [0.0; 3]);
+            self.traced_indirect.resize(m, [0.0; 3]);
+            self.traced.shade(env_full, &mut self.traced_direct, &mut self.traced_indirect).expect("sized above");
+            for k in 0..m {
+                for ch in 0..3 {
+                    self.direct[k][ch] += self.traced_direct[k][ch];
+                    self.indirect[k][ch] += self.traced_indirect[k][ch];
+                }
+            }
+        }
         self.spec_occlusion.clear();
         self.spec_fill.clear();
         if let Some(ss) = split_sum {
@@ -413,6 +467,8 @@ struct Scratch {
     v_env_log: Vec<f32>,
     rc: RcScratch,
     ss_grads: Option<SplitSumGrads>,
+    /// The traced specular lobe's env gradient (full resolution; empty without it).
+    v_env_traced: Vec<[f32; 3]>,
     albedo_chroma: AlbedoChroma,
     /// The forward's per-pixel hits, replayed by the backward (buffers reused).
     recorder: raster::HitRecorder,
@@ -427,6 +483,29 @@ fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
         detach: Detach { env: cfg.detach_env, material: cfg.detach_material, normal: cfg.detach_normal },
         detach_lhs: cfg.detach_lhs,
         detach_rhs: cfg.detach_rhs,
+    }
+}
+
+/// The specular lobe of the iteration's PBR colour: with `--specular traced`, rays drawn for
+/// the view with the iteration's seed.
+fn specular_lobe<'a>(
+    cfg: &TrainConfig,
+    state: &'a InverseState,
+    env_full: &'a EnvMap,
+    split_sum: Option<&'a SplitSum>,
+    tracer: &'a Tracer,
+) -> SpecularLobe<'a> {
+    match (cfg.specular, split_sum) {
+        (Specular::SplitSum, Some(ss)) => SpecularLobe::SplitSum(ss),
+        (Specular::Traced, _) => SpecularLobe::Traced(TracedSpecular {
+            tracer,
+            surfels: &state.surfels,
+            env: env_full,
+            start: cfg.ray_start(state.extent),
+            rays: cfg.specular_rays,
+            seed: cfg.seed ^ (state.iteration as u64).wrapping_mul(0x2545_f491_4f6c_dd1d),
+        }),
+        _ => SpecularLobe::Cached,
     }
 }
 
@@ -454,7 +533,8 @@ fn iterate(
     let ch = TRAIN_CHANNELS;
     let t0 = Instant::now();
     sc.mats.update(s);
-    sc.shading.compute(s, &sc.mats, &state.cache, env, split_sum, cam, ch);
+    let lobe = specular_lobe(cfg, state, env_full, split_sum, tracer);
+    sc.shading.compute(s, &sc.mats, &state.cache, env, lobe, cam, ch);
     let t1 = Instant::now();
     t.shading += (t1 - t0).as_secs_f64();
     let settings = RasterSettings {
@@ -584,13 +664,27 @@ fn iterate(
         [f[0], f[1], f[2]]
     }));
     let mut inp = state.cache.inputs(&sc.mats.albedo, &sc.mats.roughness, &sc.mats.normal, &sh.view);
-    inp.specular = split_sum.is_none();
+    inp.specular = matches!(lobe, SpecularLobe::Cached);
     shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
         .expect("sized above");
     if let Some(ss) = split_sum {
         let grads = sc.ss_grads.get_or_insert_with(|| ss.zero_grads());
         sh.split_sum_backward(ss, &sc.mats, &sc.v_sub_pbr, &mut sc.sub, grads);
     }
+    // The traced lobe: per active surfel (no albedo in it), and its full-resolution env part.
+    sc.v_env_traced.clear();
+    if matches!(lobe, SpecularLobe::Traced(_)) {
+        let g = sc.shading.traced.backward(env_full, &sc.v_sub_pbr).expect("sized above");
+        for k in 0..g.v_roughness.len() {
+            sc.sub.v_roughness[k] += g.v_roughness[k];
+            for c in 0..3 {
+                sc.sub.v_normal[k][c] += g.v_normal[k][c];
+                sc.sub.v_view[k][c] += g.v_view[k][c];
+            }
+        }
+        sc.v_env_traced.extend_from_slice(&g.v_env);
+    }
+    let sh = &sc.shading;
     let eye = cam.position().to_array();
     for (k, &i) in sh.active.iter().enumerate() {
         let i = i as usize;
@@ -651,6 +745,11 @@ fn iterate(
     sc.v_env.clear();
     sc.v_env.resize(env_full.texels.len(), [0.0; 3]);
     env_full.box_downsample_backward(sample_factor(cfg), &sc.v_env_small, &mut sc.v_env);
+    for (d, t) in sc.v_env.iter_mut().zip(&sc.v_env_traced) {
+        for c in 0..3 {
+            d[c] += t[c];
+        }
+    }
     if let (Some(ss), Some(grads)) = (split_sum, &sc.ss_grads) {
         ss.backward_to_env(grads, &mut sc.v_env);
     }
@@ -776,7 +875,7 @@ pub fn run_until(
         state.cache.prepare_footprints(&env_s);
         let split_sum = match cfg.specular {
             Specular::SplitSum => Some(SplitSum::new(&env)?),
-            Specular::Mc => None,
+            Specular::Mc | Specular::Traced => None,
         };
         last = iterate(
             cfg,
@@ -946,7 +1045,7 @@ mod tests {
             let objective = |m: &MaterialView, e: &EnvMap| -> f64 {
                 let ss = SplitSum::new(e).unwrap();
                 let mut sh = SurfelShading::default();
-                sh.compute(&s, m, &cache, e, Some(&ss), &cam, TRAIN_CHANNELS);
+                sh.compute(&s, m, &cache, e, SpecularLobe::SplitSum(&ss), &cam, TRAIN_CHANNELS);
                 sh.active
                     .iter()
                     .enumerate()
@@ -960,7 +1059,7 @@ mod tests {
             // Analytic gradients.
             let ss = SplitSum::new(&env).unwrap();
             let mut sh = SurfelShading::default();
-            sh.compute(&s, &mats, &cache, &env, Some(&ss), &cam, TRAIN_CHANNELS);
+            sh.compute(&s, &mats, &cache, &env, SpecularLobe::SplitSum(&ss), &cam, TRAIN_CHANNELS);
             assert!(sh.active.len() >= 3, "{} active", sh.active.len());
             let v_sub: Vec<[f32; 3]> = (0..sh.active.len()).map(|k| v_pbr[k]).collect();
             let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &sh.view);
@@ -1028,7 +1127,7 @@ mod tests {
         let eye = glam::Vec3::new(1.0, -1.5, 3.0);
         let cam = Camera::look_at("furnace", eye, glam::Vec3::ZERO, 32, 32, 0.8);
         let mut sh = SurfelShading::default();
-        sh.compute(&s, &mats, &cache, &env, Some(&ss), &cam, VIEW_CHANNELS);
+        sh.compute(&s, &mats, &cache, &env, SpecularLobe::SplitSum(&ss), &cam, VIEW_CHANNELS);
         assert_eq!(sh.active, vec![0]);
         let nn = mats.normal[0];
         let wo = view_dir(s.means[0], eye.to_array());
@@ -1044,11 +1143,73 @@ mod tests {
         }
         // Monte Carlo lobe instead: same Lambert part, a different (noisier) specular estimate.
         let mut mc = SurfelShading::default();
-        mc.compute(&s, &mats, &cache, &env, None, &cam, VIEW_CHANNELS);
+        mc.compute(&s, &mats, &cache, &env, SpecularLobe::Cached, &cam, VIEW_CHANNELS);
         for c in 0..3 {
             let lambert = mats.albedo[0][c] as f64 * (1.0 - spec) * l[c] as f64 * coverage;
             let mc_spec = mc.features[c] as f64 - lambert;
             assert!(mc_spec > 0.0 && (mc_spec - l[c] as f64 * spec).abs() < 0.5 * l[c] as f64 * spec + 1e-3);
+        }
+    }
+
+    /// The same furnace with the specular lobe traced for the view (`--specular traced`):
+    /// averaged over seeds it is L·(F0·A + B) too, the Lambert part is the cache's, every ray
+    /// sees the sky (no indirect light), and a seed's samples re-shaded under a dimmer sky
+    /// (`TracedAgain`, the gauge's path) scale with it.
+    #[test]
+    fn traced_lobe_furnace_on_a_lone_surfel() {
+        let mut s = Surfels::random_in_box(1, [0.0; 3], [0.0; 3], 2);
+        s.quats[0] = crate::surfels::quat_with_normal([0.3, -0.2, 0.9]);
+        s.albedo_logits[0] = [albedo_to_logit(0.6), albedo_to_logit(0.2), albedo_to_logit(0.4)];
+        s.roughness_logits[0] = logit(0.35);
+        let l = [1.3f32, 0.7, 2.0];
+        let env = EnvMap::constant(128, 64, l);
+        let tracer = Tracer::build(&s, &trace_settings());
+        let mut cache = IncidentCache::default();
+        cache.refresh(&tracer, &s, 64, crate::shade::incident::RayStart::offset_only(1e-3), 5);
+        let mut mats = MaterialView::default();
+        mats.update(&s);
+        let eye = glam::Vec3::new(1.0, -1.5, 3.0);
+        let cam = Camera::look_at("furnace", eye, glam::Vec3::ZERO, 32, 32, 0.8);
+        let wo = view_dir(s.means[0], eye.to_array());
+        let nn = mats.normal[0];
+        let nov = (nn[0] * wo[0] + nn[1] * wo[1] + nn[2] * wo[2]) as f64;
+        let lut = BrdfLut::get().lookup(nov, mats.roughness[0] as f64);
+        let spec = crate::shade::brdf::F0 * lut.a + lut.b;
+        let coverage = 1.0 - 10f64.to_radians().sin().powi(2);
+        let (trials, mut mean) = (200, [0.0f64; 3]);
+        let mut sh = SurfelShading::default();
+        for seed in 0..trials {
+            let lobe = SpecularLobe::Traced(TracedSpecular {
+                tracer: &tracer,
+                surfels: &s,
+                env: &env,
+                start: crate::shade::incident::RayStart::offset_only(1e-3),
+                rays: 4,
+                seed,
+            });
+            sh.compute(&s, &mats, &cache, &env, lobe, &cam, VIEW_CHANNELS);
+            assert_eq!(sh.active, vec![0]);
+            for c in 0..3 {
+                assert_eq!(sh.features[7 + c], 0.0, "no indirect light");
+                mean[c] += sh.features[c] as f64 / trials as f64;
+            }
+        }
+        for c in 0..3 {
+            let lambert = mats.albedo[0][c] as f64 * (1.0 - spec) * l[c] as f64 * coverage;
+            let traced = mean[c] - lambert;
+            assert!(
+                (traced - l[c] as f64 * spec).abs() < 0.03 * l[c] as f64 * spec,
+                "{c}: {traced} vs {}",
+                l[c] as f64 * spec
+            );
+        }
+        let before = sh.features[..3].to_vec();
+        let dim = EnvMap::constant(128, 64, l.map(|x| 0.5 * x));
+        sh.compute(&s, &mats, &cache, &env, SpecularLobe::TracedAgain(&dim), &cam, VIEW_CHANNELS);
+        for c in 0..3 {
+            let lambert = (mats.albedo[0][c] as f64 * (1.0 - spec) * l[c] as f64 * coverage) as f32;
+            let want = lambert + 0.5 * (before[c] - lambert);
+            assert!((sh.features[c] - want).abs() < 1e-5, "{} vs {want}", sh.features[c]);
         }
     }
 }

@@ -89,7 +89,7 @@ impl PbrScene {
             sample_factor,
             specular: Specular::Mc,
             ray_start: start,
-            specular_rays: RENDER_RAYS_FACTOR * 2,
+            specular_rays: RENDER_RAYS_FACTOR * crate::train::config::DEFAULT_SPECULAR_RAYS,
             seed,
         }
     }

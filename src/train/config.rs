@@ -372,7 +372,7 @@ pub struct TrainConfig {
     #[arg(long, value_enum, default_value_t = Specular::Mc)]
     pub specular: Specular,
     /// Rays per shaded surfel and iteration of `--specular traced` [2].
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = DEFAULT_SPECULAR_RAYS)]
     #[serde(default = "default_specular_rays")]
     pub specular_rays: usize,
     /// Traced rays leave a surfel from μ + offset·n, offset = this × the scene extent.
@@ -403,8 +403,11 @@ fn clip_saturated_off() -> bool {
     false
 }
 
+/// `specular_rays`' default (also what a run saved before the setting reads).
+pub const DEFAULT_SPECULAR_RAYS: usize = 2;
+
 fn default_specular_rays() -> usize {
-    2
+    DEFAULT_SPECULAR_RAYS
 }
 
 /// 2DGS's opacity reset value: what every run before `opacity_reset_cap` used.

@@ -10,6 +10,7 @@
 //! (x + 0.5, y + 0.5) (as `Camera::ray`).
 
 pub mod backward;
+pub mod blend_weights;
 pub mod forward;
 mod lanes;
 pub mod project;

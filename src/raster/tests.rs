@@ -843,3 +843,36 @@ fn recorded_hits_replay_the_backward_exactly() {
         reuse = st_b.record.take().unwrap();
     }
 }
+
+/// Re-blending features with the kept weights gives the reference's (independent, f64) feature
+/// images and alpha, for every window order, culling mode and a tile-straddling image; and the
+/// fast render's features to float rounding.
+#[test]
+fn blend_weights_reblend_features_as_the_reference() {
+    let cam = camera(37, 29);
+    for (seed, k, two_sided) in [(21u64, 32usize, false), (22, 4, true), (23, 1, true)] {
+        let s = random_scene(40, seed, (0.05, 0.35), (0.1, 0.95));
+        let ch = 5;
+        let f = random_features(40, ch, seed + 100);
+        let set = RasterSettings { window: k, two_sided, background: [0.3, 0.6, 0.9], ..Default::default() };
+        let order = if k == 32 { Order::Full } else { Order::Window(k) };
+        let r = render_ref(&RefScene::from_surfels(&s, Some((&f, ch))), &cam, &set, order);
+        let bw = blend_weights::BlendWeights::compute(&s, &cam, &set);
+        assert_eq!(bw.offsets.len(), (37 * 29) + 1);
+        assert!(bw.ids.len() > 37 * 29, "seed {seed}: too few hits ({}) to test anything", bw.ids.len());
+        let (fast, _) = render(&s, &cam, &set, Some(Features { data: &f, channels: ch }));
+        // Channels 1..4 only: the offset into each surfel's row counts.
+        let mut out = Vec::new();
+        bw.blend(&f, ch, 1, 3, &mut out);
+        for p in 0..37 * 29 {
+            let a = bw.alpha[p] as f64;
+            assert!((a - r.alpha[p]).abs() < 2e-4, "seed {seed} pixel {p}: alpha {a} vs {}", r.alpha[p]);
+            for c in 0..3 {
+                let (got, want) = (out[p * 3 + c] as f64, r.features[p * ch + 1 + c]);
+                assert!((got - want).abs() < 2e-4 * (1.0 + want.abs()), "seed {seed} pixel {p}: {got} vs {want}");
+                let fast_v = fast.features[p * ch + 1 + c] as f64;
+                assert!((got - fast_v).abs() < 1e-5 * (1.0 + fast_v.abs()), "seed {seed} pixel {p}: {got} vs {fast_v}");
+            }
+        }
+    }
+}

@@ -17,10 +17,14 @@ use super::inverse::{InverseState, SpecularLobe, SurfelShading, TRAIN_CHANNELS, 
 use super::material::MaterialView;
 use super::nvs::TrainImages;
 use super::pbr_image::PbrImageLoss;
+use crate::camera::Camera;
 use crate::envmap::EnvMap;
-use crate::raster::{self, Features, Outputs, RasterSettings};
+use crate::raster::blend_weights::BlendWeights;
+use crate::raster::{Outputs, RasterSettings};
+use crate::shade::incident::IncidentCache;
 use crate::shade::splitsum::SplitSum;
 use crate::shade::traced_specular::TracedSpecular;
+use crate::surfels::Surfels;
 use crate::surfels::{ALBEDO_HI, ALBEDO_LO, albedo_to_logit};
 use crate::trace::Tracer;
 use crate::train::config::{Specular, TrainConfig};
@@ -52,95 +56,106 @@ pub fn scaled_albedo(a: [f32; 3], s: f32) -> [f32; 3] {
     a.map(|x| (x * s).clamp(ALBEDO_LO, ALBEDO_HI))
 }
 
+/// One view's shading split by how it scales, per shaded surfel (`active`), under the unscaled
+/// materials and light: the Lambert lobe per unit albedo from the env (`lambert_env`) and from
+/// the indirect light (`lambert_indirect`), and the specular lobe's env and indirect parts.
+///
+/// The shading is linear in the albedo and in the env (the box filter, the split-sum prefilter
+/// and the traced lobe's env lookups are linear too), so under a → a' = clamp(s·a), env → env/s
+///   L_pbr(s) = (a' ⊙ lambert_env + specular_env) / s + a' ⊙ lambert_indirect + specular_indirect,
+/// exactly what shading the scaled materials gives (up to rounding): two shading passes per
+/// view and fit instead of one per evaluated scale.
+#[derive(Default)]
+pub struct ScaledShading {
+    pub active: Vec<u32>,
+    pub lambert_env: Vec<[f32; 3]>,
+    pub lambert_indirect: Vec<[f32; 3]>,
+    pub specular_env: Vec<[f32; 3]>,
+    pub specular_indirect: Vec<[f32; 3]>,
+}
+
+impl ScaledShading {
+    /// Split the shading of `mats` (whose albedo is replaced) for `camera`: `first` is the lobe
+    /// of the first pass (a traced lobe traces there), `again` that of the second (for a traced
+    /// lobe `TracedAgain` under the same env, else the same lobe).
+    #[allow(clippy::too_many_arguments)]
+    pub fn compute(
+        shading: &mut SurfelShading,
+        surfels: &Surfels,
+        mats: &MaterialView,
+        cache: &IncidentCache,
+        env: &EnvMap,
+        first: SpecularLobe,
+        again: SpecularLobe,
+        camera: &Camera,
+    ) -> ScaledShading {
+        let mut unit = MaterialView { albedo: vec![[1.0; 3]; mats.albedo.len()], ..mats.clone() };
+        shading.compute(surfels, &unit, cache, env, first, camera, TRAIN_CHANNELS);
+        let (lambert_env, lambert_indirect) = (shading.direct.clone(), shading.indirect.clone());
+        let active = shading.active.clone();
+        unit.albedo.iter_mut().for_each(|a| *a = [0.0; 3]);
+        shading.compute(surfels, &unit, cache, env, again, camera, TRAIN_CHANNELS);
+        debug_assert_eq!(shading.active, active, "the albedo does not change which surfels are shaded");
+        let minus = |a: Vec<[f32; 3]>, b: &[[f32; 3]]| -> Vec<[f32; 3]> {
+            a.iter().zip(b).map(|(x, y)| [x[0] - y[0], x[1] - y[1], x[2] - y[2]]).collect()
+        };
+        ScaledShading {
+            lambert_env: minus(lambert_env, &shading.direct),
+            lambert_indirect: minus(lambert_indirect, &shading.indirect),
+            specular_env: shading.direct.clone(),
+            specular_indirect: shading.indirect.clone(),
+            active,
+        }
+    }
+
+    /// Per-surfel linear PBR colour (N × 3, zero where not shaded) under scale `s` for the
+    /// unscaled albedo `albedo`.
+    pub fn pbr(&self, albedo: &[[f32; 3]], s: f32, out: &mut Vec<f32>) {
+        out.clear();
+        out.resize(albedo.len() * 3, 0.0);
+        for (k, &i) in self.active.iter().enumerate() {
+            let i = i as usize;
+            let a = scaled_albedo(albedo[i], s);
+            for c in 0..3 {
+                out[i * 3 + c] = (a[c] * self.lambert_env[k][c] + self.specular_env[k][c]) / s
+                    + a[c] * self.lambert_indirect[k][c]
+                    + self.specular_indirect[k][c];
+            }
+        }
+    }
+}
+
 /// Evaluates the PBR image loss for a given scale (buffers reused between calls).
 struct Evaluator<'a> {
-    cfg: &'a TrainConfig,
-    state: &'a InverseState,
     images: &'a TrainImages,
     views: Vec<usize>,
-    base: MaterialView,
-    mats: MaterialView,
-    env: EnvMap,
-    /// One per view: with a traced specular lobe, each view's samples are traced once per fit
-    /// and shaded again under every scaled light.
-    shading: Vec<SurfelShading>,
-    /// The tracer of a traced specular lobe (none otherwise).
-    tracer: Option<Tracer>,
+    albedo: Vec<[f32; 3]>,
+    /// Per view: its shading split by scaling, and its blend weights (the geometry is fixed
+    /// during a fit: every scale is blended with the same weights, no render per evaluation).
+    shading: Vec<ScaledShading>,
+    blend: Vec<BlendWeights>,
+    /// Per view, the ground truth over black.
+    gt: Vec<Vec<[f32; 3]>>,
+    /// Scratch: per-surfel PBR colour, and one view's blended image.
+    surfel_pbr: Vec<f32>,
+    pbr: Vec<f32>,
     loss: PbrImageLoss,
-    gt: Vec<[f32; 3]>,
-    v_features: Vec<f32>,
-    v_alpha: Vec<f32>,
     evaluations: usize,
 }
 
 impl Evaluator<'_> {
     fn loss(&mut self, s: f32) -> f32 {
         self.evaluations += 1;
-        for (m, b) in self.mats.albedo.iter_mut().zip(&self.base.albedo) {
-            *m = scaled_albedo(*b, s);
-        }
-        let mut env = self.env.clone();
-        for t in &mut env.texels {
-            *t = t.map(|v| v / s);
-        }
-        let env_s = env.box_downsample(sample_factor(self.cfg));
-        let split_sum = match self.cfg.specular {
-            Specular::SplitSum => Some(SplitSum::new(&env).expect("the learned env is a valid map")),
-            Specular::Mc | Specular::Traced => None,
-        };
         // A black background: the GT is composited over it too, so only the object counts.
         let bg = [0.0f32; 3];
         let mut total = 0.0f64;
-        let first = self.evaluations == 1;
         for (slot, &v) in self.views.iter().enumerate() {
             let cam = &self.images.cameras[v];
-            let lobe = match (&split_sum, &self.tracer) {
-                (Some(ss), _) => SpecularLobe::SplitSum(ss),
-                (None, Some(tracer)) if first => SpecularLobe::Traced(TracedSpecular {
-                    tracer,
-                    surfels: &self.state.surfels,
-                    env: &env,
-                    start: self.cfg.ray_start(self.state.extent),
-                    rays: self.cfg.specular_rays,
-                    // Fixed per fit (and per view): every scale sees the same samples.
-                    seed: self.cfg.seed ^ 0x6a09_e667 ^ (self.state.iteration as u64) << 8 ^ v as u64,
-                }),
-                (None, Some(_)) => SpecularLobe::TracedAgain(&env),
-                (None, None) => SpecularLobe::Cached,
-            };
-            let shading = &mut self.shading[slot];
-            shading.compute(&self.state.surfels, &self.mats, &self.state.cache, &env_s, lobe, cam, TRAIN_CHANNELS);
-            let settings = RasterSettings {
-                window: self.cfg.window,
-                filter_inv_square: self.cfg.filter_inv_square,
-                two_sided: false,
-                background: bg,
-                outputs: Outputs { colour: false, ..Outputs::none() },
-                ..RasterSettings::default()
-            };
-            let features = Features { data: &shading.features, channels: TRAIN_CHANNELS };
-            let (out, _) = raster::render(&self.state.surfels, cam, &settings, Some(features));
-            let (rgb, alpha) = (&self.images.rgb[v], &self.images.alpha[v]);
-            self.gt.clear();
-            self.gt.extend(rgb.iter().zip(alpha).map(|(c, &a)| c.map(|x| x * a)));
-            let np = rgb.len();
-            self.v_features.clear();
-            self.v_features.resize(np * TRAIN_CHANNELS, 0.0);
-            self.v_alpha.clear();
-            self.v_alpha.resize(np, 0.0);
+            self.shading[slot].pbr(&self.albedo, s, &mut self.surfel_pbr);
+            let blend = &self.blend[slot];
+            blend.blend(&self.surfel_pbr, 3, 0, 3, &mut self.pbr);
             let wh = (cam.width as usize, cam.height as usize);
-            let t = self.loss.evaluate(
-                &out.features,
-                TRAIN_CHANNELS,
-                &out.alpha,
-                bg,
-                &self.gt,
-                alpha,
-                wh,
-                1.0,
-                &mut self.v_features,
-                &mut self.v_alpha,
-            );
+            let t = self.loss.value(&self.pbr, 3, &blend.alpha, bg, &self.gt[slot], &self.images.alpha[v], wh);
             total += (t.l1 + 0.2 * t.dssim) as f64;
         }
         (total / self.views.len() as f64) as f32
@@ -151,24 +166,69 @@ impl Evaluator<'_> {
 pub fn fit(cfg: &TrainConfig, state: &InverseState, images: &TrainImages) -> GaugeFit {
     let n = images.cameras.len();
     let count = VIEWS.min(n);
-    let mut base = MaterialView::default();
-    base.update(&state.surfels);
+    // Fixed views spread over the set: the fit is deterministic.
+    let views: Vec<usize> = (0..count).map(|k| k * n / count).collect();
+    let mut mats = MaterialView::default();
+    mats.update(&state.surfels);
+    let env = state.env();
+    let env_s = env.box_downsample(sample_factor(cfg));
+    let split_sum = match cfg.specular {
+        Specular::SplitSum => Some(SplitSum::new(&env).expect("the learned env is a valid map")),
+        Specular::Mc | Specular::Traced => None,
+    };
+    let tracer =
+        (cfg.specular == Specular::Traced).then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings()));
+    let settings = RasterSettings {
+        window: cfg.window,
+        filter_inv_square: cfg.filter_inv_square,
+        two_sided: false,
+        outputs: Outputs::none(),
+        ..RasterSettings::default()
+    };
+    let mut scratch = SurfelShading::default();
+    let (mut shading, mut blend, mut gt) = (Vec::new(), Vec::new(), Vec::new());
+    for &v in &views {
+        let cam = &images.cameras[v];
+        let lobes = || match (&split_sum, &tracer) {
+            (Some(ss), _) => (SpecularLobe::SplitSum(ss), SpecularLobe::SplitSum(ss)),
+            (None, Some(tracer)) => (
+                SpecularLobe::Traced(TracedSpecular {
+                    tracer,
+                    surfels: &state.surfels,
+                    env: &env,
+                    start: cfg.ray_start(state.extent),
+                    rays: cfg.specular_rays,
+                    // Fixed per fit (and per view): every scale sees the same samples.
+                    seed: cfg.seed ^ 0x6a09_e667 ^ (state.iteration as u64) << 8 ^ v as u64,
+                }),
+                SpecularLobe::TracedAgain(&env),
+            ),
+            (None, None) => (SpecularLobe::Cached, SpecularLobe::Cached),
+        };
+        let (first, again) = lobes();
+        shading.push(ScaledShading::compute(
+            &mut scratch,
+            &state.surfels,
+            &mats,
+            &state.cache,
+            &env_s,
+            first,
+            again,
+            cam,
+        ));
+        blend.push(BlendWeights::compute(&state.surfels, cam, &settings));
+        gt.push(images.rgb[v].iter().zip(&images.alpha[v]).map(|(c, &a)| c.map(|x| x * a)).collect());
+    }
     let mut ev = Evaluator {
-        cfg,
-        state,
         images,
-        // Fixed views spread over the set: the fit is deterministic.
-        views: (0..count).map(|k| k * n / count).collect(),
-        mats: base.clone(),
-        base,
-        env: state.env(),
-        shading: (0..count).map(|_| SurfelShading::default()).collect(),
-        tracer: (cfg.specular == Specular::Traced)
-            .then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings())),
+        views,
+        albedo: mats.albedo,
+        shading,
+        blend,
+        gt,
+        surfel_pbr: Vec::new(),
+        pbr: Vec::new(),
         loss: PbrImageLoss::clipping(cfg.clip_saturated),
-        gt: Vec::new(),
-        v_features: Vec::new(),
-        v_alpha: Vec::new(),
         evaluations: 0,
     };
     let (best_x, best_loss, loss_at_one) = search(|x| ev.loss(x.exp() as f32));
@@ -342,5 +402,89 @@ mod tests {
         }
         // Clamping: an albedo near the top of the range cannot follow s.
         assert_eq!(scaled_albedo([0.7, 0.01, 0.3], 2.0), [ALBEDO_HI, ALBEDO_LO, 0.6]);
+    }
+
+    /// The split shading re-scaled equals shading the scaled albedo under the scaled light
+    /// (`SurfelShading::compute`, the path the gauge used per evaluation), for every specular
+    /// lobe, at scales whose albedo clamps at either end of its range.
+    #[test]
+    fn scaled_shading_is_shading_the_scaled_materials() {
+        use super::super::inverse::trace_settings;
+        use crate::shade::incident::RayStart;
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let mut surfels = Surfels::random_in_box(60, [-0.6, -0.6, -0.3], [0.6, 0.6, 0.3], 7);
+        for i in 0..surfels.len() {
+            // Albedo over the whole range: some clamp at s = 4 (high) and at s = 1/4 (low).
+            surfels.albedo_logits[i] = [0; 3].map(|_| albedo_to_logit(rng.random_range(0.05..0.9)));
+            surfels.roughness_logits[i] = crate::surfels::logit(rng.random_range(0.1..0.9));
+        }
+        let tracer = Tracer::build(&surfels, &trace_settings());
+        let mut cache = IncidentCache::default();
+        let start = RayStart::offset_only(1e-3);
+        cache.refresh(&tracer, &surfels, 16, start, 3);
+        let env = EnvMap {
+            width: 32,
+            height: 16,
+            texels: (0..512).map(|_| [0; 3].map(|_| rng.random_range(0.1..3.0))).collect(),
+        };
+        let env_s = env.box_downsample(2);
+        let split = SplitSum::new(&env).unwrap();
+        let cam = Camera::look_at("g", glam::Vec3::new(0.4, -2.5, 1.2), glam::Vec3::ZERO, 24, 24, 0.9);
+        let mut mats = MaterialView::default();
+        mats.update(&surfels);
+        fn traced<'a>(
+            tracer: &'a Tracer,
+            surfels: &'a Surfels,
+            env: &'a EnvMap,
+            start: RayStart,
+        ) -> TracedSpecular<'a> {
+            TracedSpecular { tracer, surfels, env, start, rays: 4, seed: 11 }
+        }
+        for lobe in ["cached", "split-sum", "traced"] {
+            let pick = || match lobe {
+                "cached" => (SpecularLobe::Cached, SpecularLobe::Cached),
+                "split-sum" => (SpecularLobe::SplitSum(&split), SpecularLobe::SplitSum(&split)),
+                _ => (SpecularLobe::Traced(traced(&tracer, &surfels, &env, start)), SpecularLobe::TracedAgain(&env)),
+            };
+            let (first, again) = pick();
+            let mut scratch = SurfelShading::default();
+            let split_shading =
+                ScaledShading::compute(&mut scratch, &surfels, &mats, &cache, &env_s, first, again, &cam);
+            assert!(split_shading.active.len() > 10, "{lobe}: too few shaded surfels");
+            let mut fast = Vec::new();
+            for s in [0.25f32, 0.8, 1.0, 2.3, 4.0] {
+                split_shading.pbr(&mats.albedo, s, &mut fast);
+                // The direct way: scaled albedo, env ÷ s (and for split-sum its prefilter of it).
+                let mut scaled = mats.clone();
+                scaled.albedo.iter_mut().for_each(|a| *a = scaled_albedo(*a, s));
+                let mut dim = env.clone();
+                dim.texels.iter_mut().for_each(|t| *t = t.map(|v| v / s));
+                let dim_split = SplitSum::new(&dim).unwrap();
+                let direct_lobe = match lobe {
+                    "cached" => SpecularLobe::Cached,
+                    "split-sum" => SpecularLobe::SplitSum(&dim_split),
+                    _ => SpecularLobe::Traced(traced(&tracer, &surfels, &dim, start)),
+                };
+                let mut direct = SurfelShading::default();
+                direct.compute(&surfels, &scaled, &cache, &dim.box_downsample(2), direct_lobe, &cam, TRAIN_CHANNELS);
+                assert_eq!(direct.active, split_shading.active);
+                let mut clamped = 0;
+                for &i in &direct.active {
+                    let i = i as usize;
+                    clamped += (scaled.albedo[i] != mats.albedo[i].map(|a| a * s)) as usize;
+                    for c in 0..3 {
+                        let (got, want) = (fast[i * 3 + c], direct.features[i * TRAIN_CHANNELS + c]);
+                        assert!(
+                            (got - want).abs() <= 1e-5 + 2e-5 * want.abs(),
+                            "{lobe}, s {s}, surfel {i}: {got} vs {want}"
+                        );
+                    }
+                }
+                if s == 4.0 || s == 0.25 {
+                    assert!(clamped > 0, "{lobe}, s {s}: no albedo clamps");
+                }
+            }
+        }
     }
 }

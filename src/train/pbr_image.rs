@@ -10,7 +10,7 @@
 //! object covers fully count (ground-truth alpha ≥ `SATURATED`): a white background composites
 //! to 1 as well, and there a brighter rendering (a floater) is an error.
 
-use super::consistency::{encode, encode_derivative};
+use super::consistency::{encode, encode_derivative_given};
 use crate::loss::{self, Ssim};
 use rayon::prelude::*;
 
@@ -62,6 +62,81 @@ impl PbrImageLoss {
         v_alpha: &mut [f32],
     ) -> PbrImageTerms {
         let np = w * h;
+        let bg_lin = self.encode_and_clip(features, channels, alpha, bg, gt, gt_alpha, np);
+        let mut terms = PbrImageTerms { psnr: loss::psnr(&self.srgb, gt), ..Default::default() };
+        if weight <= 0.0 {
+            return terms;
+        }
+        self.v_srgb.clear();
+        self.v_srgb.resize(np, [0.0; 3]);
+        terms.l1 = loss::l1_rgb(&self.srgb, gt, None, weight, &mut self.v_srgb);
+        terms.dssim = self.ssim.dssim_loss(&self.srgb, gt, w, h, weight * 0.2, &mut self.v_srgb);
+        let (clipped, v_srgb, linear, srgb) = (&self.clipped, &self.v_srgb, &self.linear, &self.srgb);
+        v_features[..np * channels]
+            .par_chunks_mut(channels)
+            .zip(v_alpha[..np].par_iter_mut())
+            .enumerate()
+            .with_min_len(1024)
+            .for_each(|(p, (vf, v_a))| {
+                let mut va = 0.0;
+                for k in 0..3 {
+                    if clipped[p] & (1 << k) != 0 {
+                        continue;
+                    }
+                    // Not clipped: srgb holds encode(linear).
+                    let v = v_srgb[p][k] * encode_derivative_given(linear[p][k], srgb[p][k]);
+                    vf[k] += v;
+                    va -= v * bg_lin[k];
+                }
+                *v_a += va;
+            });
+        terms
+    }
+
+    /// The loss terms without gradients (the same values as [`Self::evaluate`] with a
+    /// positive weight).
+    #[allow(clippy::too_many_arguments)]
+    pub fn value(
+        &mut self,
+        features: &[f32],
+        channels: usize,
+        alpha: &[f32],
+        bg: [f32; 3],
+        gt: &[[f32; 3]],
+        gt_alpha: &[f32],
+        (w, h): (usize, usize),
+    ) -> PbrImageTerms {
+        let np = w * h;
+        self.encode_and_clip(features, channels, alpha, bg, gt, gt_alpha, np);
+        let l1 = if np == 0 {
+            0.0
+        } else {
+            let sum: f64 = self
+                .srgb
+                .par_iter()
+                .zip(gt)
+                .with_min_len(1024)
+                .map(|(s, g)| (0..3).map(|k| (s[k] - g[k]).abs() as f64).sum::<f64>())
+                .sum();
+            (sum / (3 * np) as f64) as f32
+        };
+        let dssim = if np == 0 { 0.0 } else { 1.0 - self.ssim.forward(&self.srgb, gt, w, h) };
+        PbrImageTerms { l1, dssim, psnr: loss::psnr(&self.srgb, gt) }
+    }
+
+    /// The composited linear image into `linear`, its sRGB encoding into `srgb`, saturated
+    /// ground-truth channels clamped there (flagged in `clipped`); returns the linear background.
+    #[allow(clippy::too_many_arguments)]
+    fn encode_and_clip(
+        &mut self,
+        features: &[f32],
+        channels: usize,
+        alpha: &[f32],
+        bg: [f32; 3],
+        gt: &[[f32; 3]],
+        gt_alpha: &[f32],
+        np: usize,
+    ) -> [f32; 3] {
         let bg_lin = bg.map(crate::io::image::srgb_to_linear);
         // Per pixel and independent (the sRGB encode's powf is the cost): rayon over pixels.
         self.linear.resize(np, [0.0; 3]);
@@ -89,33 +164,7 @@ impl PbrImageLoss {
                 }
             }
         }
-        let mut terms = PbrImageTerms { psnr: loss::psnr(&self.srgb, gt), ..Default::default() };
-        if weight <= 0.0 {
-            return terms;
-        }
-        self.v_srgb.clear();
-        self.v_srgb.resize(np, [0.0; 3]);
-        terms.l1 = loss::l1_rgb(&self.srgb, gt, None, weight, &mut self.v_srgb);
-        terms.dssim = self.ssim.dssim_loss(&self.srgb, gt, w, h, weight * 0.2, &mut self.v_srgb);
-        let (clipped, v_srgb, linear) = (&self.clipped, &self.v_srgb, &self.linear);
-        v_features[..np * channels]
-            .par_chunks_mut(channels)
-            .zip(v_alpha[..np].par_iter_mut())
-            .enumerate()
-            .with_min_len(1024)
-            .for_each(|(p, (vf, v_a))| {
-                let mut va = 0.0;
-                for k in 0..3 {
-                    if clipped[p] & (1 << k) != 0 {
-                        continue;
-                    }
-                    let v = v_srgb[p][k] * encode_derivative(linear[p][k]);
-                    vf[k] += v;
-                    va -= v * bg_lin[k];
-                }
-                *v_a += va;
-            });
-        terms
+        bg_lin
     }
 }
 
@@ -237,5 +286,28 @@ mod tests {
         // Partly covered pixels are not clips either.
         let edge = loss_over(true, &bright, &rendered_alpha, [1.0; 3], &white, &vec![0.6; w * h], (w, h));
         assert!(edge > 1e-2, "{edge}");
+    }
+
+    /// The gradient-free terms are the evaluated ones, with and without clipping, on an image
+    /// big enough for SSIM's window.
+    #[test]
+    fn value_matches_evaluate() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        let (w, h, ch) = (23, 17, 4);
+        let features: Vec<f32> = (0..w * h * ch).map(|_| rng.random_range(0.0..1.4)).collect();
+        let alpha: Vec<f32> = (0..w * h).map(|_| rng.random_range(0.2..1.0)).collect();
+        let gt: Vec<[f32; 3]> = (0..w * h)
+            .map(|_| [0; 3].map(|_| if rng.random_bool(0.2) { 1.0 } else { rng.random_range(0.0..1.0) }))
+            .collect();
+        let gt_alpha = coverage(w * h);
+        for clip in [false, true] {
+            let mut loss = PbrImageLoss::clipping(clip);
+            let (mut vf, mut va) = (vec![0.0; w * h * ch], vec![0.0; w * h]);
+            let e =
+                loss.evaluate(&features, ch, &alpha, [0.1, 0.2, 0.3], &gt, &gt_alpha, (w, h), 1.0, &mut vf, &mut va);
+            let v = loss.value(&features, ch, &alpha, [0.1, 0.2, 0.3], &gt, &gt_alpha, (w, h));
+            assert!(e.l1 > 0.05 && e.dssim > 0.05, "{e:?}");
+            assert!((e.l1 - v.l1).abs() < 1e-6 && (e.dssim - v.dssim).abs() < 1e-6 && e.psnr == v.psnr, "{e:?} {v:?}");
+        }
     }
 }

@@ -34,12 +34,16 @@ pub struct PackedFootprint {
     pub ty: f32,
 }
 
+/// The brightest texel a loaded map may hold (the sun in a real HDRI is ~1e5–1e9).
+pub const MAX_RADIANCE: f32 = 1e15;
+
 impl EnvMap {
     pub fn constant(width: usize, height: usize, rgb: [f32; 3]) -> EnvMap {
         EnvMap { width, height, texels: vec![rgb; width * height] }
     }
 
-    /// Load a .hdr or .exr lat-long map (linear). Rejects non-finite values; clamps
+    /// Load a .hdr or .exr lat-long map (linear). Rejects non-finite values and values above
+    /// [`MAX_RADIANCE`]; clamps
     /// negative ones to 0 with a warning.
     pub fn load(path: &Path) -> Result<EnvMap> {
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
@@ -51,6 +55,17 @@ impl EnvMap {
             return Err(Error::format(path, "size", format!("{}×{} is too small", img.width, img.height)));
         }
         let mut texels: Vec<[f32; 3]> = img.data.chunks_exact(4).map(|p| [p[0], p[1], p[2]]).collect();
+        // Finite but absurd values (a float map's 3e38) overflow the shading's sums and priors.
+        let brightest = texels.iter().flatten().fold(0.0f32, |m, v| m.max(*v));
+        if brightest > MAX_RADIANCE {
+            return Err(Error::format(
+                path,
+                "texels",
+                format!(
+                    "a value of {brightest:.3e} exceeds {MAX_RADIANCE:.0e} (no light is that bright; is the map scaled?)"
+                ),
+            ));
+        }
         // Half-float maps filtered by their authors often carry tiny negative lobes: radiance
         // cannot be negative, so clamp them (and say so) rather than refuse the map.
         let negative = texels.iter().flatten().filter(|v| **v < 0.0).count();
@@ -355,6 +370,23 @@ pub fn fast_atan2(y: f32, x: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A finite but absurd texel is refused naming the file; the brightest plausible one loads.
+    #[test]
+    fn absurdly_bright_maps_are_refused() {
+        let dir = std::env::temp_dir().join(format!("radiogs-env-bright-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("bright.exr");
+        let mut env = EnvMap::constant(8, 4, [1.0; 3]);
+        env.texels[5] = [3e38, 1.0, 1.0];
+        env.save(&path).unwrap();
+        let err = EnvMap::load(&path).unwrap_err().to_string();
+        assert!(err.contains("bright.exr") && err.contains("texels") && err.contains("exceeds"), "{err}");
+        env.texels[5] = [1e9, 1.0, 1.0];
+        env.save(&path).unwrap();
+        assert_eq!(EnvMap::load(&path).unwrap().texels[5][0], 1e9);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn box_downsample_keeps_the_mean_and_its_backward_is_the_transpose() {

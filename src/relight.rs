@@ -273,6 +273,13 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     if args.bounces == 0 {
         anyhow::bail!("--bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");
     }
+    // The training config's ranges (256 rays; more surfels than a scene has is allowed).
+    if !(1..=256).contains(&args.rc_rays) {
+        anyhow::bail!("--rc-rays {}: must be 1..=256", args.rc_rays);
+    }
+    if !(1..=1 << 24).contains(&args.rc_surfels) {
+        anyhow::bail!("--rc-surfels {}: must be 1..=16777216", args.rc_surfels);
+    }
     let cfg = crate::eval::load_run_config(run)?;
     let mut surfels = crate::eval::load_run_surfels(run)?;
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;

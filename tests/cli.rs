@@ -95,3 +95,18 @@ fn relight_without_recovered_light_says_what_to_run() {
     assert!(err.contains("envmap.exr") && err.contains("--stage inverse") && !err.contains("panicked"), "{err}");
     assert!(!dir.join("out").exists(), "nothing is written on bad input");
 }
+
+/// Interval settings that divide the iteration number are refused by name before anything is
+/// written (a 0 used to panic with a division by zero after `config.toml` was written).
+#[test]
+fn zero_intervals_are_refused_by_name() {
+    for (flag, key) in [("--log-every", "log_every"), ("--densify-every", "densify_every")] {
+        let dir = temp_dir(key);
+        let out = dir.join("run");
+        let (code, _, err) =
+            radiogs(&["train", "--data", "/nonexistent/dataset", "--out", out.to_str().unwrap(), flag, "0"]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains(key) && !err.contains("panicked"), "{err}");
+        assert!(!out.exists(), "{flag} 0 left {}", out.display());
+    }
+}

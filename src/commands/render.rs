@@ -163,7 +163,9 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         }
         _ => bail!("radiogs render needs --run RUN, or --ply F.ply with --cameras transforms.json"),
     };
-    std::fs::create_dir_all(&args.out).with_context(|| format!("creating output folder {}", args.out.display()))?;
+    if views.is_empty() {
+        bail!("no views to render (the camera file's frames are empty)");
+    }
     let outputs = Outputs {
         colour: true,
         depth: args.aux,
@@ -187,6 +189,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         eprintln!("{}: a ray-traced relit run renders with --mode pbr", run.display());
         return render_pbr_modes(&RenderArgs { mode: RenderMode::Pbr, ..args.clone() }, &views);
     }
+    create_out(&args.out)?;
     let bar = indicatif::ProgressBar::new(views.len() as u64);
     for view in &views {
         let cam = &view.camera;
@@ -227,6 +230,11 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
 }
 
 /// The PBR / material modes: one rasterisation with feature channels per view.
+/// The output folder, made only once the inputs have loaded (no empty folder after an error).
+fn create_out(out: &std::path::Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating output folder {}", out.display()))
+}
+
 fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> anyhow::Result<()> {
     use crate::io::image::linear_to_srgb;
     let Some(run) = &args.run else { bail!("--mode {:?} needs --run RUN (a run after the inverse stage)", args.mode) };
@@ -241,6 +249,7 @@ fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> an
         scene.env = env;
     }
     scene.window = args.k;
+    create_out(&args.out)?;
     let bar = indicatif::ProgressBar::new(views.len() as u64);
     let png = args.format == ImageFormat::Png;
     let split_sum = scene.split_sum();

@@ -80,6 +80,8 @@ pub fn load_run_config(run: &Path) -> anyhow::Result<TrainConfig> {
     }
     let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
     let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| crate::train::config::toml_error(&path, &text, &e))?;
+    // An edited file is checked as `train` checks its settings (a NaN filter renders nothing).
+    cfg.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     // After the inverse stage the surfels are oriented (with flipped twins where a wall is
     // seen from both sides) and must be drawn with back faces culled.
     if run.join("envmap.exr").is_file() {
@@ -495,6 +497,9 @@ fn eval_relight(
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    if !(1..=1024).contains(&args.relight_samples) {
+        anyhow::bail!("--relight-samples {}: must be 1..=1024", args.relight_samples);
+    }
     if args.relight_bounces == 0 {
         anyhow::bail!("--relight-bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");
     }

@@ -168,7 +168,7 @@ fn number(path: &Path, v: &serde_json::Value, field: &str) -> Result<f64> {
 
 fn matrix_rows(path: &Path, field: &str, values: &[f64]) -> Result<[[f32; 4]; 4]> {
     if values.len() != 16 {
-        return Err(Error::format(path, field, format!("{} values, expected 16", values.len())));
+        return Err(Error::format(path, field, format!("{} values, expected 4 rows of 4 numbers", values.len())));
     }
     if values.iter().any(|v| !v.is_finite()) {
         return Err(Error::format(path, field, "a value is not finite"));
@@ -186,6 +186,12 @@ fn camera_error(path: &Path, field: &str, e: Error) -> Error {
 impl Dataset {
     /// Open a dataset folder (cameras only; images load later).
     pub fn open(root: &Path) -> Result<Dataset> {
+        if root.is_file() {
+            return Err(Error::invalid(
+                root.display().to_string(),
+                "is a file; --data takes the dataset folder (the one holding transforms_train.json or train_XXX/)",
+            ));
+        }
         if !root.is_dir() {
             return Err(Error::io(root, std::io::Error::new(std::io::ErrorKind::NotFound, "dataset folder not found")));
         }
@@ -219,6 +225,11 @@ impl Dataset {
             }
         }
         envmaps.sort();
+        // Every view's image is there (only the first one's header was read): a missing file
+        // stops here, before a run folder is written, not when the images load.
+        if let Some(v) = train.iter().chain(&test).find(|v| !v.image_path.is_file()) {
+            return Err(Error::io(&v.image_path, std::io::Error::new(std::io::ErrorKind::NotFound, "image not found")));
+        }
         let train_env = read_train_env(root);
         Ok(Dataset { root: root.to_path_buf(), layout, train, test, envmaps, train_env })
     }
@@ -334,6 +345,9 @@ pub fn read_transforms(root: &Path, path: &Path) -> Result<Vec<View>> {
 pub fn read_transforms_sized(root: &Path, path: &Path, size: Option<(u32, u32)>) -> Result<Vec<View>> {
     let json = read_json(path)?;
     let angle = number(path, &json, "camera_angle_x")? as f32;
+    if !(angle > 0.0 && angle < std::f32::consts::PI) {
+        return Err(Error::format(path, "camera_angle_x", format!("{angle} is not in (0, π) radians")));
+    }
     let frames = json
         .get("frames")
         .and_then(|f| f.as_array())
@@ -388,7 +402,35 @@ pub fn read_transforms_sized(root: &Path, path: &Path, size: Option<(u32, u32)>)
         let folder = image_path.parent().unwrap_or(root).to_path_buf();
         views.push(View { camera, image_path, folder, file_size: (w, h), downscale: 1 });
     }
+    unique_names(&mut views);
     Ok(views)
+}
+
+/// Views are written and reported by name: when two share one (a camera file whose frames
+/// all point at `…/rgba.png` without a TensoIR `metadata.json` beside them), every view of a
+/// shared name gets its image's folder in front (`test_000_rgba`), and the frame index when
+/// that still collides (`007_rgba`).
+fn unique_names(views: &mut [View]) {
+    use std::collections::HashMap;
+    let count = |views: &[View]| {
+        let mut c: HashMap<String, usize> = HashMap::new();
+        for v in views {
+            *c.entry(v.camera.name.clone()).or_default() += 1;
+        }
+        c
+    };
+    let seen = count(views);
+    for v in views.iter_mut().filter(|v| seen[&v.camera.name] > 1) {
+        if let Some(folder) = v.image_path.parent().and_then(|p| p.file_name()) {
+            v.camera.name = format!("{}_{}", folder.to_string_lossy(), v.camera.name);
+        }
+    }
+    let seen = count(views);
+    for (i, v) in views.iter_mut().enumerate() {
+        if seen[&v.camera.name] > 1 {
+            v.camera.name = format!("{i:03}_{}", v.camera.name);
+        }
+    }
 }
 
 fn read_tensoir_split(root: &Path, split: Split) -> Result<Vec<View>> {
@@ -421,6 +463,9 @@ fn read_tensoir_view(folder: &Path) -> Result<View> {
     };
     let c2w = matrix_rows(&meta_path, "cam_transform_mat", &values)?;
     let angle = number(&meta_path, &meta, "cam_angle_x")? as f32;
+    if !(angle > 0.0 && angle < std::f32::consts::PI) {
+        return Err(Error::format(&meta_path, "cam_angle_x", format!("{angle} is not in (0, π) radians")));
+    }
     let w = number(&meta_path, &meta, "imw")?;
     let h = number(&meta_path, &meta, "imh")?;
     if w < 1.0 || h < 1.0 || w.fract() != 0.0 || h.fract() != 0.0 {
@@ -474,6 +519,26 @@ mod tests {
         assert_eq!(ds.train.len(), 3);
         assert_eq!(ds.load_images(Split::Train).unwrap().len(), 3);
         assert!(ds.summary().contains("3 train / 0 test views at 8×8"));
+    }
+
+    /// Frames whose images share a file name get distinct view names (outputs are written by
+    /// name): the folder first, then the frame index; distinct names stay as they are.
+    #[test]
+    fn views_sharing_a_file_name_get_distinct_names() {
+        let dir = temp_dir("names");
+        let files = ["a/rgba", "b/rgba", "c/x/rgba", "d/x/rgba", "r_7"];
+        let frames: Vec<String> = files
+            .iter()
+            .map(|f| {
+                write_image(&dir.join(format!("{f}.png")), &Image::new(4, 4, 4)).unwrap();
+                format!(r#"{{"file_path": "./{f}", "transform_matrix": {C2W}}}"#)
+            })
+            .collect();
+        let json = dir.join("cams.json");
+        std::fs::write(&json, format!(r#"{{"camera_angle_x": 0.69, "frames": [{}]}}"#, frames.join(","))).unwrap();
+        let views = read_transforms(&dir, &json).unwrap();
+        let names: Vec<&str> = views.iter().map(|v| v.camera.name.as_str()).collect();
+        assert_eq!(names, ["a_rgba", "b_rgba", "002_x_rgba", "003_x_rgba", "r_7"]);
     }
 
     #[test]
@@ -589,9 +654,20 @@ mod tests {
         let ds = Dataset::open(&dir2).unwrap();
         let err = ds.load_images(Split::Train).unwrap_err().to_string();
         assert!(err.contains("r_1.png") && err.contains("9×8"), "{err}");
-        // Missing image file.
+        // Missing image file: the first (whose header gives the size) and a later one.
+        std::fs::remove_file(dir2.join("train/r_1.png")).unwrap();
+        let err = Dataset::open(&dir2).unwrap_err().to_string();
+        assert!(err.contains("r_1.png") && err.contains("not found"), "{err}");
         std::fs::remove_file(dir2.join("train/r_0.png")).unwrap();
         let err = Dataset::open(&dir2).unwrap_err().to_string();
         assert!(err.contains("r_0.png"), "{err}");
+        // The transforms file given instead of its folder; a field of view out of range.
+        let err = Dataset::open(&dir2.join("transforms_train.json")).unwrap_err().to_string();
+        assert!(err.contains("is a file") && err.contains("folder"), "{err}");
+        write_blender(&dir2, 1, 8);
+        let text = std::fs::read_to_string(dir2.join("transforms_train.json")).unwrap();
+        std::fs::write(dir2.join("transforms_train.json"), text.replace("0.69", "0")).unwrap();
+        let err = Dataset::open(&dir2).unwrap_err().to_string();
+        assert!(err.contains("transforms_train.json: camera_angle_x"), "{err}");
     }
 }

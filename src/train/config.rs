@@ -584,6 +584,12 @@ impl TrainConfig {
         if self.cache_every == 0 {
             return bad("cache_every", "must be at least 1".into());
         }
+        if self.densify_every == 0 {
+            return bad("densify_every", "must be at least 1 (densify_until 0 turns densification off)".into());
+        }
+        if self.log_every == 0 {
+            return bad("log_every", "must be at least 1".into());
+        }
         if self.specular_rays == 0 || self.specular_rays > 256 {
             return bad("specular_rays", format!("{} must be 1..=256", self.specular_rays));
         }
@@ -685,6 +691,11 @@ mod tests {
             assert!(err.contains("resolution") && err.contains("not a width"), "{err}");
         }
         assert!(TrainConfig { resolution: 4, ..TrainConfig::default() }.validate().is_ok());
+        // Both are divisors of the iteration number (a 0 panicked before it was checked).
+        let err = TrainConfig { densify_every: 0, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+        assert!(err.contains("densify_every") && err.contains("densify_until"), "{err}");
+        let err = TrainConfig { log_every: 0, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+        assert!(err.contains("log_every"), "{err}");
     }
 
     /// Position rates scale as 30000 / iters within [1, 10]; a settings file or a run saved
@@ -743,6 +754,14 @@ mod tests {
         std::fs::create_dir_all(&run).unwrap();
         std::fs::write(run.join("config.toml"), "iters = 3000\n").unwrap();
         let saved = crate::eval::load_run_config(&run).unwrap();
+        // A run's file is validated as `train`'s settings are, naming the file and the setting.
+        for bad in ["window = 0\n", "filter_inv_square = nan\n"] {
+            std::fs::write(run.join("config.toml"), format!("iters = 3000\n{bad}")).unwrap();
+            let err = crate::eval::load_run_config(&run).unwrap_err().to_string();
+            let key = bad.split(' ').next().unwrap();
+            assert!(err.contains("config.toml") && err.contains(key), "{err}");
+        }
+        std::fs::write(run.join("config.toml"), "iters = 3000\n").unwrap();
         assert!(!saved.scale_position_lr);
         assert_eq!(saved.filter_inv_square, crate::raster::filter_inv_square_2dgs());
         assert_eq!(saved.opacity_reset_cap, opacity_reset_cap_2dgs());

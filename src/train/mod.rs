@@ -22,6 +22,9 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     cfg.validate()?;
     let dataset = Dataset::open_downscaled(&cfg.data, cfg.resolution)?;
     std::fs::create_dir_all(&cfg.out).map_err(|e| crate::Error::io(&cfg.out, e))?;
+    if !cfg.resume && matches!(cfg.stage, Stage::Nvs | Stage::Init | Stage::All) {
+        remove_stale_inverse_outputs(&cfg.out)?;
+    }
     cfg.save(&cfg.out.join("config.toml"))?;
     eprintln!("{}", dataset.summary());
     let stages: &[Stage] = match cfg.stage {
@@ -30,6 +33,13 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
         Stage::Inverse => &[Stage::Inverse],
         _ => &[Stage::Nvs, Stage::Inverse],
     };
+    // A resumed stage that had nothing left to run keeps what the summary said about it.
+    let summary_path = cfg.out.join("train_summary.json");
+    let previous: serde_json::Map<String, serde_json::Value> = if cfg.resume {
+        std::fs::read_to_string(&summary_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default()
+    } else {
+        Default::default()
+    };
     let mut summaries = serde_json::Map::new();
     for &stage in stages {
         let (name, summary) = match stage {
@@ -37,9 +47,16 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
             Stage::Init => ("init", pbr_init::run(cfg, &dataset, true)?),
             _ => ("inverse", inverse::run(cfg, &dataset, true)?),
         };
+        if summary.iterations_run == 0 && !summary.interrupted {
+            eprintln!("{name}: already complete ({} iterations) in {}", summary.iterations, cfg.out.display());
+            if let Some(old) = previous.get(name) {
+                summaries.insert(name.to_string(), old.clone());
+                continue;
+            }
+        }
         summaries.insert(name.to_string(), serde_json::to_value(&summary)?);
         let text = serde_json::to_string_pretty(&summaries)?;
-        crate::io::atomic::write_atomic(&cfg.out.join("train_summary.json"), text.as_bytes())?;
+        crate::io::atomic::write_atomic(&summary_path, text.as_bytes())?;
         if summary.interrupted {
             let ckpt = match stage {
                 Stage::Nvs => nvs::GeometryStage::Nvs.checkpoint(&cfg.out),
@@ -69,4 +86,48 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// The inverse stage's outputs in `run`. A fresh geometry stage makes them describe surfels
+/// that are gone: left in place, `eval` and `render` would pair the new geometry with the old
+/// light and materials (`envmap.exr` marks a run as inverse-trained).
+const INVERSE_OUTPUTS: [&str; 4] =
+    ["envmap.exr", "checkpoint_inverse.bin", "metrics_inverse.jsonl", "inverse_times.json"];
+
+/// Remove [`INVERSE_OUTPUTS`] from `run`, saying which.
+fn remove_stale_inverse_outputs(run: &std::path::Path) -> crate::Result<()> {
+    let stale: Vec<&str> = INVERSE_OUTPUTS.into_iter().filter(|f| run.join(f).is_file()).collect();
+    for f in &stale {
+        let path = run.join(f);
+        std::fs::remove_file(&path).map_err(|e| crate::Error::io(&path, e))?;
+    }
+    if !stale.is_empty() {
+        eprintln!(
+            "{}: a new geometry stage; removed the previous inverse stage's {} (train with --resume to continue a run instead)",
+            run.display(),
+            stale.join(", ")
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    /// Only the inverse stage's files go, and only those present.
+    #[test]
+    fn stale_inverse_outputs_are_removed_and_nothing_else() {
+        let dir = std::env::temp_dir().join(format!("radiogs-stale-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        for f in ["envmap.exr", "checkpoint_inverse.bin", "checkpoint.bin", "point_cloud.ply", "config.toml"] {
+            std::fs::write(dir.join(f), "x").unwrap();
+        }
+        super::remove_stale_inverse_outputs(&dir).unwrap();
+        let mut left: Vec<String> =
+            std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).collect();
+        left.sort();
+        assert_eq!(left, ["checkpoint.bin", "config.toml", "point_cloud.ply"]);
+        super::remove_stale_inverse_outputs(&dir).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -127,9 +127,9 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         bail!("--k {}: the sorting window must be in 1..={}", args.k, raster::MAX_WINDOW);
     }
     let size = match (args.width, args.height) {
-        (Some(w), Some(h)) if w > 0 && h > 0 => Some((w, h)),
+        (Some(w), Some(h)) if w > 0 && h > 0 && w.max(h) <= crate::io::dataset::MAX_IMAGE_SIDE => Some((w, h)),
         (None, None) => None,
-        _ => bail!("--width and --height must be given together and be positive"),
+        _ => bail!("--width and --height must be given together, each in 1..={}", crate::io::dataset::MAX_IMAGE_SIDE),
     };
     // The scene and cameras: a PLY + camera file, or a run (its surfels, its dataset's test views).
     // A run renders with its own screen-space filter; a PLY with 2DGS's.

@@ -377,6 +377,8 @@ pub struct RelightMetrics {
     pub seconds: f64,
     /// Mean time of one relit frame (rasterised, or traced shading + rasterisation).
     pub frame_ms: f64,
+    /// Test views with a relit image of this light (the means are over these).
+    pub views: usize,
 }
 
 /// Relight under every dataset light with relit images, both modes (DESIGN §5: sRGB, the
@@ -480,8 +482,17 @@ fn eval_relight(
                     )?;
                 }
             }
+            if psnrs.len() < views.len() {
+                eprintln!(
+                    "warning: relight {name}: {} of {} test views have no rgba_{name}.png; the means are over the other {}",
+                    views.len() - psnrs.len(),
+                    views.len(),
+                    psnrs.len()
+                );
+            }
             let nviews = psnrs.len().max(1);
             let m = RelightMetrics {
+                views: psnrs.len(),
                 light: name.clone(),
                 mode: if mode == "traced" { "traced" } else { "finetune" },
                 psnr: psnrs.iter().sum::<f32>() / nviews as f32,

@@ -335,6 +335,10 @@ fn read_train_env(root: &Path) -> Option<String> {
     readme.get("environment")?.get("train_env")?.as_str().map(String::from)
 }
 
+/// The largest image side read or rendered (16k: beyond it one frame's buffers alone need
+/// tens of GiB).
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+
 /// Read a Blender `transforms_*.json`. Image size comes from `w`/`h` when present, else from
 /// the first frame's image header; every frame must then have that size (checked on load).
 pub fn read_transforms(root: &Path, path: &Path) -> Result<Vec<View>> {
@@ -354,9 +358,19 @@ pub fn read_transforms_sized(root: &Path, path: &Path, size: Option<(u32, u32)>)
         .ok_or_else(|| Error::format(path, "frames", "missing or not a list"))?;
     let mut size =
         size.or_else(|| match (json.get("w").and_then(|v| v.as_u64()), json.get("h").and_then(|v| v.as_u64())) {
-            (Some(w), Some(h)) => Some((w as u32, h as u32)),
+            (Some(w), Some(h)) => Some((w.min(u32::MAX as u64) as u32, h.min(u32::MAX as u64) as u32)),
             _ => None,
         });
+    for key in ["w", "h"] {
+        if json.get(key).is_some_and(|v| v.as_u64().is_none()) {
+            return Err(Error::format(path, key, "not a whole number of pixels"));
+        }
+    }
+    if let Some((w, h)) = size
+        && (w == 0 || h == 0 || w.max(h) > MAX_IMAGE_SIDE)
+    {
+        return Err(Error::format(path, "w, h", format!("{w}×{h}: each side must be 1..={MAX_IMAGE_SIDE}")));
+    }
     let mut views = Vec::with_capacity(frames.len());
     for (i, frame) in frames.iter().enumerate() {
         let field = |name: &str| format!("frames[{i}].{name}");
@@ -661,6 +675,20 @@ mod tests {
         std::fs::remove_file(dir2.join("train/r_0.png")).unwrap();
         let err = Dataset::open(&dir2).unwrap_err().to_string();
         assert!(err.contains("r_0.png"), "{err}");
+        // An image size out of range or not a whole number.
+        for (bad, key) in
+            [(r#""w": 0, "h": 4"#, "w, h"), (r#""w": 100000, "h": 4"#, "w, h"), (r#""w": 16.5, "h": 4"#, "w")]
+        {
+            std::fs::write(
+                dir.join("transforms_train.json"),
+                format!(
+                    r#"{{"camera_angle_x": 0.7, {bad}, "frames": [{{"file_path": "a", "transform_matrix": {C2W}}}]}}"#
+                ),
+            )
+            .unwrap();
+            let err = Dataset::open(&dir).unwrap_err().to_string();
+            assert!(err.contains(&format!("transforms_train.json: {key}")), "{bad}: {err}");
+        }
         // The transforms file given instead of its folder; a field of view out of range.
         let err = Dataset::open(&dir2.join("transforms_train.json")).unwrap_err().to_string();
         assert!(err.contains("is a file") && err.contains("folder"), "{err}");

@@ -25,6 +25,9 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     if !cfg.resume && matches!(cfg.stage, Stage::Nvs | Stage::Init | Stage::All) {
         remove_stale_inverse_outputs(&cfg.out)?;
     }
+    if cfg.resume {
+        warn_on_changed_data(cfg);
+    }
     cfg.save(&cfg.out.join("config.toml"))?;
     eprintln!("{}", dataset.summary());
     let stages: &[Stage] = match cfg.stage {
@@ -86,6 +89,26 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// A resumed run continues with the images it is given; say so when they are not the ones
+/// (or not the resolution) the run was trained on. Datasets move, so this does not refuse.
+fn warn_on_changed_data(cfg: &TrainConfig) {
+    let Ok(saved) = crate::eval::load_run_config(&cfg.out) else { return };
+    let same = |a: &std::path::Path, b: &std::path::Path| match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    };
+    if !same(&saved.data, &cfg.data) || saved.resolution != cfg.resolution {
+        eprintln!(
+            "warning: {} was trained on {} at -r {}; resuming on {} at -r {}",
+            cfg.out.display(),
+            saved.data.display(),
+            saved.resolution,
+            cfg.data.display(),
+            cfg.resolution
+        );
+    }
 }
 
 /// The inverse stage's outputs in `run`. A fresh geometry stage makes them describe surfels

@@ -21,8 +21,37 @@ pub fn ensure_parent(path: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Where an atomic write of `path` must go: a symlink is followed (the rename replaces its
+/// target, not the link), and an existing path that is not a regular file (a device, a FIFO, a
+/// folder) is refused, since the rename would replace it with a file.
+fn write_target(path: &Path) -> Result<PathBuf> {
+    let mut target = path.to_path_buf();
+    // A chain of links, bounded (a loop is an error).
+    for _ in 0..40 {
+        match std::fs::symlink_metadata(&target) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let link = std::fs::read_link(&target).map_err(|e| Error::io(&target, e))?;
+                target = match target.parent() {
+                    Some(parent) if link.is_relative() => parent.join(link),
+                    _ => link,
+                };
+            }
+            Ok(m) if !m.is_file() => {
+                return Err(Error::invalid(
+                    target.display().to_string(),
+                    "exists and is not a regular file; outputs are written to a temporary file and renamed over it",
+                ));
+            }
+            _ => return Ok(target),
+        }
+    }
+    Err(Error::invalid(path.display().to_string(), "too many levels of symbolic links"))
+}
+
 /// Write `path` atomically with the bytes produced by `fill`.
 pub fn write_atomic_with(path: &Path, fill: impl FnOnce(&mut dyn Write) -> std::io::Result<()>) -> Result<()> {
+    let resolved = write_target(path)?;
+    let path = resolved.as_path();
     ensure_parent(path)?;
     let tmp = temp_sibling(path);
     let result = (|| {
@@ -43,4 +72,37 @@ pub fn write_atomic_with(path: &Path, fill: impl FnOnce(&mut dyn Write) -> std::
 /// Write `bytes` to `path` atomically.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A write through a symlink (and a chain of two) replaces the target's content and keeps
+    /// the links; a path that is a folder or a device is refused before anything is written.
+    #[test]
+    fn links_are_followed_and_non_files_refused() {
+        let dir = std::env::temp_dir().join(format!("radiogs-atomic-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        let target = dir.join("sub/target.json");
+        std::fs::write(&target, "old").unwrap();
+        std::os::unix::fs::symlink("sub/target.json", dir.join("link.json")).unwrap();
+        std::os::unix::fs::symlink(dir.join("link.json"), dir.join("link2.json")).unwrap();
+        write_atomic(&dir.join("link2.json"), b"new").unwrap();
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "new");
+        for link in ["link.json", "link2.json"] {
+            assert!(std::fs::symlink_metadata(dir.join(link)).unwrap().file_type().is_symlink(), "{link}");
+        }
+        // A dangling link: the file is created where it points.
+        std::os::unix::fs::symlink("sub/fresh.json", dir.join("dangling.json")).unwrap();
+        write_atomic(&dir.join("dangling.json"), b"x").unwrap();
+        assert_eq!(std::fs::read_to_string(dir.join("sub/fresh.json")).unwrap(), "x");
+        let err = write_atomic(&dir.join("sub"), b"x").unwrap_err().to_string();
+        assert!(err.contains("sub") && err.contains("not a regular file"), "{err}");
+        assert!(dir.join("sub").is_dir());
+        let err = write_atomic(Path::new("/dev/null"), b"x").unwrap_err().to_string();
+        assert!(err.contains("/dev/null") && err.contains("not a regular file"), "{err}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -225,9 +225,10 @@ impl Dataset {
             }
         }
         envmaps.sort();
-        // Every view's image is there (only the first one's header was read): a missing file
-        // stops here, before a run folder is written, not when the images load.
-        if let Some(v) = train.iter().chain(&test).find(|v| !v.image_path.is_file()) {
+        // Every training image is there (only the first one's header was read): a missing file
+        // stops here, before a run folder is written, not when the images load. (Test images
+        // are needed by `eval` only, which says so when one is missing.)
+        if let Some(v) = train.iter().find(|v| !v.image_path.is_file()) {
             return Err(Error::io(&v.image_path, std::io::Error::new(std::io::ErrorKind::NotFound, "image not found")));
         }
         let train_env = read_train_env(root);

@@ -170,7 +170,29 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     })?;
     anyhow::ensure!((8..=4096).contains(&args.res), "--res {} is out of range [8, 4096]", args.res);
     anyhow::ensure!(args.spp >= 1 && args.max_bounces >= 1, "--spp and --max-bounces must be ≥ 1");
-    anyhow::ensure!(args.env_width >= 16, "--env-width must be ≥ 16");
+    anyhow::ensure!(
+        (16..=16384).contains(&args.env_width),
+        "--env-width {} is out of range [16, 16384]",
+        args.env_width
+    );
+    anyhow::ensure!(
+        (1..=10_000).contains(&args.train_views) && args.test_views <= 10_000,
+        "--train-views must be in 1..=10000 and --test-views in 0..=10000 (got {} and {})",
+        args.train_views,
+        args.test_views
+    );
+    // ("sky" is --train-env's default: only another name is a conflict that can be seen.)
+    if args.envmap.is_some() && args.train_env != "sky" {
+        anyhow::bail!("--envmap and --train-env both name the training light: give one");
+    }
+    // Every built-in light named exists, before anything is written.
+    let named =
+        std::iter::once(&args.train_env).filter(|_| args.envmap.is_none()).chain(args.relight_envs.iter().flatten());
+    for name in named.filter(|n| !n.is_empty()) {
+        if !PROCEDURAL.contains(&name.as_str()) {
+            anyhow::bail!("--relight-envs/--train-env: unknown env '{name}' (built-ins: {})", PROCEDURAL.join(", "));
+        }
+    }
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
 
@@ -352,6 +374,28 @@ mod tests {
             env_width: 32,
             relight_envs: Some(vec!["studio".into()]),
             ..SynthArgs::demo(out)
+        }
+    }
+
+    /// Settings that cannot make a dataset are refused by name, and nothing is written.
+    #[test]
+    fn bad_settings_write_nothing() {
+        let out = std::env::temp_dir().join(format!("radiogs-synth-bad-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let cases = [
+            (SynthArgs { train_views: 0, ..tiny(out.clone()) }, "--train-views"),
+            (SynthArgs { relight_envs: Some(vec!["sky".into(), "nope".into()]), ..tiny(out.clone()) }, "'nope'"),
+            (SynthArgs { train_env: "nope".into(), ..tiny(out.clone()) }, "'nope'"),
+            (SynthArgs { env_width: 100_000, ..tiny(out.clone()) }, "--env-width"),
+            (
+                SynthArgs { envmap: Some(out.join("x.hdr")), train_env: "studio".into(), ..tiny(out.clone()) },
+                "--envmap and --train-env",
+            ),
+        ];
+        for (args, says) in cases {
+            let err = run(&args).unwrap_err().to_string();
+            assert!(err.contains(says), "{err}");
+            assert!(!out.exists(), "{says}: wrote {}", out.display());
         }
     }
 

@@ -561,8 +561,8 @@ impl TrainConfig {
         if !(1..=256).contains(&self.rc_rays) {
             return bad("rc_rays", format!("{} is not in 1..=256", self.rc_rays));
         }
-        if self.env_height < 8 || self.env_height % 8 != 0 {
-            return bad("env_height", format!("{} must be a multiple of 8, at least 8", self.env_height));
+        if self.env_height < 8 || self.env_height % 8 != 0 || self.env_height > 1024 {
+            return bad("env_height", format!("{} must be a multiple of 8 in 8..=1024", self.env_height));
         }
         if !(0.03..0.8).contains(&self.albedo_init) {
             return bad("albedo_init", format!("{} is not in (0.03, 0.8)", self.albedo_init));
@@ -696,6 +696,11 @@ mod tests {
         assert!(err.contains("densify_every") && err.contains("densify_until"), "{err}");
         let err = TrainConfig { log_every: 0, ..TrainConfig::default() }.validate().unwrap_err().to_string();
         assert!(err.contains("log_every"), "{err}");
+        // A 100000-texel-high env aborted on allocation.
+        for bad in [0, 12, 100_000] {
+            let err = TrainConfig { env_height: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+            assert!(err.contains("env_height"), "{err}");
+        }
     }
 
     /// Position rates scale as 30000 / iters within [1, 10]; a settings file or a run saved

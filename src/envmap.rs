@@ -385,6 +385,14 @@ mod tests {
         env.texels[5] = [1e9, 1.0, 1.0];
         env.save(&path).unwrap();
         assert_eq!(EnvMap::load(&path).unwrap().texels[5][0], 1e9);
+        // An empty or cut-off file says so (it said "failed to fill whole buffer").
+        std::fs::write(dir.join("empty.hdr"), b"").unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(dir.join("cut.exr"), &bytes[..bytes.len() / 2]).unwrap();
+        let err = EnvMap::load(&dir.join("empty.hdr")).unwrap_err().to_string();
+        assert!(err.contains("empty.hdr") && err.contains("ends early"), "{err}");
+        let err = EnvMap::load(&dir.join("cut.exr")).unwrap_err().to_string();
+        assert!(err.contains("cut.exr") && !err.contains("fill whole buffer"), "{err}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

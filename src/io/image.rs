@@ -120,6 +120,10 @@ pub fn srgb_to_linear(x: f32) -> f32 {
 
 fn decode_error(path: &Path, e: image::ImageError) -> Error {
     match e {
+        // Decoders read from memory: running out of bytes means the file ends early.
+        image::ImageError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            Error::format(path, "image data", "the file ends early (truncated or empty)")
+        }
         image::ImageError::IoError(io) => Error::io(path, io),
         other => Error::format(path, "image data", other.to_string()),
     }

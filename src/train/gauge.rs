@@ -16,7 +16,7 @@
 use super::inverse::{InverseState, SpecularLobe, SurfelShading, TRAIN_CHANNELS, sample_factor};
 use super::material::MaterialView;
 use super::nvs::TrainImages;
-use super::pbr_image::PbrImageLoss;
+use super::pbr_image::{PbrImage, PbrImageLoss};
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::raster::blend_weights::BlendWeights;
@@ -155,7 +155,16 @@ impl Evaluator<'_> {
             let blend = &self.blend[slot];
             blend.blend(&self.surfel_pbr, 3, 0, 3, &mut self.pbr);
             let wh = (cam.width as usize, cam.height as usize);
-            let t = self.loss.value(&self.pbr, 3, &blend.alpha, bg, &self.gt[slot], &self.images.alpha[v], wh);
+            let img = PbrImage {
+                features: &self.pbr,
+                channels: 3,
+                alpha: &blend.alpha,
+                bg,
+                gt: &self.gt[slot],
+                gt_alpha: &self.images.alpha[v],
+                size: wh,
+            };
+            let t = self.loss.value(&img);
             total += (t.l1 + 0.2 * t.dssim) as f64;
         }
         (total / self.views.len() as f64) as f32

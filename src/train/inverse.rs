@@ -28,7 +28,7 @@ use super::material::{MaterialGrads, MaterialView, orient_surfels, view_dir, vie
 use super::nvs::{
     self, StageSummary, TimeSplit, TrainImages, iteration_rng, open_metrics, progress_bar, view_for_iteration,
 };
-use super::pbr_image::PbrImageLoss;
+use super::pbr_image::{PbrImage, PbrImageLoss};
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::error::Error;
@@ -582,18 +582,16 @@ fn iterate(
 
     // PBR image: linear features over the linear background, then sRGB.
     let wp = cfg.lambda_pbr;
-    let pbr = sc.pbr_image.evaluate(
-        &out.features,
-        ch,
-        &out.alpha,
+    let img = PbrImage {
+        features: &out.features,
+        channels: ch,
+        alpha: &out.alpha,
         bg,
-        &sc.gt,
-        alpha,
-        (w, h),
-        wp,
-        &mut g.v_features,
-        &mut g.v_alpha,
-    );
+        gt: &sc.gt,
+        gt_alpha: alpha,
+        size: (w, h),
+    };
+    let pbr = sc.pbr_image.evaluate(&img, wp, &mut g.v_features, &mut g.v_alpha);
     (l.pbr_l1, l.pbr_dssim, l.psnr_pbr) = (pbr.l1, pbr.dssim, pbr.psnr);
     l.total += wp * (l.pbr_l1 + 0.2 * l.pbr_dssim);
     if cfg.lambda_mask_inverse > 0.0 {

@@ -30,6 +30,20 @@ pub struct PbrImageLoss {
 /// A ground-truth channel at or above this (sRGB, 8-bit quantised) was clipped at 1.
 pub const SATURATED: f32 = 1.0 - 0.5 / 255.0;
 
+/// One rendered PBR image and its ground truth: `features` holds `channels` values per pixel
+/// with the linear PBR colour first, `alpha` is the rendered opacity, `gt` the ground truth over
+/// `bg` (sRGB) and `gt_alpha` its alpha; `size` is (width, height).
+#[derive(Clone, Copy)]
+pub struct PbrImage<'a> {
+    pub features: &'a [f32],
+    pub channels: usize,
+    pub alpha: &'a [f32],
+    pub bg: [f32; 3],
+    pub gt: &'a [[f32; 3]],
+    pub gt_alpha: &'a [f32],
+    pub size: (usize, usize),
+}
+
 /// Unweighted terms and the PSNR of the sRGB PBR image.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct PbrImageTerms {
@@ -43,26 +57,18 @@ impl PbrImageLoss {
         PbrImageLoss { clip_saturated, ..Default::default() }
     }
 
-    /// `features` holds `channels` values per pixel with the linear PBR colour first and
-    /// `alpha` the rendered opacity; `gt` is the ground truth over `bg`, `gt_alpha` its alpha.
-    /// With `weight` > 0 the gradients are added into `v_features` (the same layout) and
-    /// `v_alpha` (through the background term).
-    #[allow(clippy::too_many_arguments)]
+    /// The loss of `img`; with `weight` > 0 the gradients are added into `v_features` (the
+    /// features' layout) and `v_alpha` (through the background term).
     pub fn evaluate(
         &mut self,
-        features: &[f32],
-        channels: usize,
-        alpha: &[f32],
-        bg: [f32; 3],
-        gt: &[[f32; 3]],
-        gt_alpha: &[f32],
-        (w, h): (usize, usize),
+        img: &PbrImage,
         weight: f32,
         v_features: &mut [f32],
         v_alpha: &mut [f32],
     ) -> PbrImageTerms {
+        let (gt, channels, (w, h)) = (img.gt, img.channels, img.size);
         let np = w * h;
-        let bg_lin = self.encode_and_clip(features, channels, alpha, bg, gt, gt_alpha, np);
+        let bg_lin = self.encode_and_clip(img);
         let mut terms = PbrImageTerms { psnr: loss::psnr(&self.srgb, gt), ..Default::default() };
         if weight <= 0.0 {
             return terms;
@@ -95,19 +101,10 @@ impl PbrImageLoss {
 
     /// The loss terms without gradients (the same values as [`Self::evaluate`] with a
     /// positive weight).
-    #[allow(clippy::too_many_arguments)]
-    pub fn value(
-        &mut self,
-        features: &[f32],
-        channels: usize,
-        alpha: &[f32],
-        bg: [f32; 3],
-        gt: &[[f32; 3]],
-        gt_alpha: &[f32],
-        (w, h): (usize, usize),
-    ) -> PbrImageTerms {
+    pub fn value(&mut self, img: &PbrImage) -> PbrImageTerms {
+        let (gt, (w, h)) = (img.gt, img.size);
         let np = w * h;
-        self.encode_and_clip(features, channels, alpha, bg, gt, gt_alpha, np);
+        self.encode_and_clip(img);
         let l1 = if np == 0 {
             0.0
         } else {
@@ -126,17 +123,9 @@ impl PbrImageLoss {
 
     /// The composited linear image into `linear`, its sRGB encoding into `srgb`, saturated
     /// ground-truth channels clamped there (flagged in `clipped`); returns the linear background.
-    #[allow(clippy::too_many_arguments)]
-    fn encode_and_clip(
-        &mut self,
-        features: &[f32],
-        channels: usize,
-        alpha: &[f32],
-        bg: [f32; 3],
-        gt: &[[f32; 3]],
-        gt_alpha: &[f32],
-        np: usize,
-    ) -> [f32; 3] {
+    fn encode_and_clip(&mut self, img: &PbrImage) -> [f32; 3] {
+        let PbrImage { features, channels, alpha, bg, gt, gt_alpha, size: (w, h) } = *img;
+        let np = w * h;
         let bg_lin = bg.map(crate::io::image::srgb_to_linear);
         // Per pixel and independent (the sRGB encode's powf is the cost): rayon over pixels.
         self.linear.resize(np, [0.0; 3]);
@@ -205,7 +194,12 @@ mod tests {
     ) -> f64 {
         let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
         let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
-        let t = l.evaluate(f, 4, a, bg, gt, gt_alpha, wh, 1.0, &mut vf, &mut va);
+        let t = l.evaluate(
+            &PbrImage { features: f, channels: 4, alpha: a, bg, gt, gt_alpha, size: wh },
+            1.0,
+            &mut vf,
+            &mut va,
+        );
         (t.l1 + 0.2 * t.dssim) as f64
     }
 
@@ -216,7 +210,20 @@ mod tests {
             let mut l = PbrImageLoss { clip_saturated: clip, ..Default::default() };
             let (mut vf, mut va) = (vec![0.0; f.len()], vec![0.0; a.len()]);
             let gt_alpha = coverage(a.len());
-            l.evaluate(&f, 4, &a, [0.2, 0.5, 0.9], &gt, &gt_alpha, wh, 1.0, &mut vf, &mut va);
+            l.evaluate(
+                &PbrImage {
+                    features: &f,
+                    channels: 4,
+                    alpha: &a,
+                    bg: [0.2, 0.5, 0.9],
+                    gt: &gt,
+                    gt_alpha: &gt_alpha,
+                    size: wh,
+                },
+                1.0,
+                &mut vf,
+                &mut va,
+            );
             let loss_of = |clip, f: &[f32], a: &[f32], gt: &[[f32; 3]], wh| {
                 loss_over(clip, f, a, [0.2, 0.5, 0.9], gt, &gt_alpha, wh)
             };
@@ -267,7 +274,20 @@ mod tests {
         assert!(loss_of(true, &brighter, &alpha, &hdr, (w, h)) > 1e-2);
         let mut l = PbrImageLoss { clip_saturated: true, ..Default::default() };
         let (mut vf, mut va) = (vec![0.0; over.len()], vec![0.0; w * h]);
-        l.evaluate(&over, 4, &alpha, [0.0; 3], &gt, &alpha, (w, h), 1.0, &mut vf, &mut va);
+        l.evaluate(
+            &PbrImage {
+                features: &over,
+                channels: 4,
+                alpha: &alpha,
+                bg: [0.0; 3],
+                gt: &gt,
+                gt_alpha: &alpha,
+                size: (w, h),
+            },
+            1.0,
+            &mut vf,
+            &mut va,
+        );
         assert!(vf.iter().step_by(4).all(|&v| v == 0.0), "no gradient through a clamped channel");
     }
 
@@ -302,10 +322,18 @@ mod tests {
         let gt_alpha = coverage(w * h);
         for clip in [false, true] {
             let mut loss = PbrImageLoss::clipping(clip);
+            let img = PbrImage {
+                features: &features,
+                channels: ch,
+                alpha: &alpha,
+                bg: [0.1, 0.2, 0.3],
+                gt: &gt,
+                gt_alpha: &gt_alpha,
+                size: (w, h),
+            };
             let (mut vf, mut va) = (vec![0.0; w * h * ch], vec![0.0; w * h]);
-            let e =
-                loss.evaluate(&features, ch, &alpha, [0.1, 0.2, 0.3], &gt, &gt_alpha, (w, h), 1.0, &mut vf, &mut va);
-            let v = loss.value(&features, ch, &alpha, [0.1, 0.2, 0.3], &gt, &gt_alpha, (w, h));
+            let e = loss.evaluate(&img, 1.0, &mut vf, &mut va);
+            let v = loss.value(&img);
             assert!(e.l1 > 0.05 && e.dssim > 0.05, "{e:?}");
             assert!((e.l1 - v.l1).abs() < 1e-6 && (e.dssim - v.dssim).abs() < 1e-6 && e.psnr == v.psnr, "{e:?} {v:?}");
         }

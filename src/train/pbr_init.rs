@@ -16,7 +16,7 @@
 
 use super::light::LearnedLight;
 use super::material::{MaterialGrads, MaterialView, view_dir, view_dir_backward};
-use super::pbr_image::PbrImageLoss;
+use super::pbr_image::{PbrImage, PbrImageLoss};
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::loss::EdgeAwareSmoothness;
@@ -236,18 +236,9 @@ impl InitPass {
         let (w, h) = (out.width as usize, out.height as usize);
         let wp = cfg.lambda_pbr;
         self.pbr_image.clip_saturated = cfg.clip_saturated;
-        let t = self.pbr_image.evaluate(
-            &out.features,
-            CHANNELS,
-            &out.alpha,
-            bg,
-            gt,
-            gt_alpha,
-            (w, h),
-            wp,
-            &mut g.v_features,
-            &mut g.v_alpha,
-        );
+        let img =
+            PbrImage { features: &out.features, channels: CHANNELS, alpha: &out.alpha, bg, gt, gt_alpha, size: (w, h) };
+        let t = self.pbr_image.evaluate(&img, wp, &mut g.v_features, &mut g.v_alpha);
         (l.pbr_l1, l.pbr_dssim, l.psnr_pbr) = (t.l1, t.dssim, t.psnr);
         let mut total = wp * (t.l1 + 0.2 * t.dssim);
         if cfg.lambda_smooth_normal > 0.0 && !out.normal.is_empty() {

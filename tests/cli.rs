@@ -110,3 +110,40 @@ fn zero_intervals_are_refused_by_name() {
         assert!(!out.exists(), "{flag} 0 left {}", out.display());
     }
 }
+
+/// A tiny synthetic dataset (16², 2 training views, 1 test view) in `dir/data`.
+fn tiny_dataset(dir: &std::path::Path) -> std::path::PathBuf {
+    let data = dir.join("data");
+    let (code, _, err) = radiogs(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--res",
+        "16",
+        "--train-views",
+        "2",
+        "--test-views",
+        "1",
+        "--spp",
+        "1",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    data
+}
+
+/// A training image cut short (its header whole) is refused by name before the run folder is
+/// written (it used to fail when the images loaded, after `config.toml` was written).
+#[test]
+fn truncated_training_image_is_refused_before_anything_is_written() {
+    let dir = temp_dir("truncated");
+    let data = tiny_dataset(&dir);
+    let image = data.join("train_001/rgba.png");
+    let bytes = std::fs::read(&image).unwrap();
+    std::fs::write(&image, &bytes[..bytes.len() / 2]).unwrap();
+    let out = dir.join("run");
+    let (code, _, err) =
+        radiogs(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iters", "2"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("train_001/rgba.png") && err.contains("truncated") && !err.contains("panicked"), "{err}");
+    assert!(!out.exists(), "a bad image left {}", out.display());
+}

@@ -10,7 +10,7 @@
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
-use crate::io::image::{Image, read_rgba};
+use crate::io::image::{Image, check_image, read_rgba};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -125,17 +125,25 @@ impl View {
         self.load_file(&self.image_path)
     }
 
+    /// Decode the view's image in full and check its size, keeping nothing: a truncated or
+    /// corrupt file is found before a run folder is written, not when the images load.
+    pub fn check_image(&self) -> Result<()> {
+        let size = check_image(&self.image_path)?;
+        self.check_size(&self.image_path, size)
+    }
+
+    fn check_size(&self, path: &Path, (width, height): (u32, u32)) -> Result<()> {
+        let (w, h) = self.file_size;
+        if width != w || height != h {
+            return Err(Error::format(path, "size", format!("{width}×{height} but the camera says {w}×{h}")));
+        }
+        Ok(())
+    }
+
     /// Read one of the view's files, check its size and shrink it to the camera's.
     fn load_file(&self, path: &Path) -> Result<Image> {
         let img = read_rgba(path)?;
-        let (w, h) = self.file_size;
-        if img.width != w || img.height != h {
-            return Err(Error::format(
-                path,
-                "size",
-                format!("{}×{} but the camera says {}×{}", img.width, img.height, w, h),
-            ));
-        }
+        self.check_size(path, (img.width, img.height))?;
         Ok(img.downscale(self.downscale))
     }
 }
@@ -266,6 +274,12 @@ impl Dataset {
     /// Load every image of a split in parallel (RGBA, values as stored).
     pub fn load_images(&self, split: Split) -> Result<Vec<Image>> {
         self.views(split).par_iter().map(|v| v.load_image()).collect()
+    }
+
+    /// Decode every image of a split in parallel and check its size, keeping none (see
+    /// [`View::check_image`]); the first bad file is the error.
+    pub fn check_images(&self, split: Split) -> Result<()> {
+        self.views(split).par_iter().try_for_each(|v| v.check_image())
     }
 
     /// GT passes found in the first test view (or train view if no test split).
@@ -676,6 +690,19 @@ mod tests {
         std::fs::remove_file(dir2.join("train/r_0.png")).unwrap();
         let err = Dataset::open(&dir2).unwrap_err().to_string();
         assert!(err.contains("r_0.png"), "{err}");
+        // A training image cut short is found by the check that reads every image in full
+        // (the header alone, which gives the size, is still whole).
+        write_blender(&dir2, 2, 8);
+        let bytes = std::fs::read(dir2.join("train/r_1.png")).unwrap();
+        std::fs::write(dir2.join("train/r_1.png"), &bytes[..bytes.len() - 20]).unwrap();
+        let ds = Dataset::open(&dir2).unwrap();
+        let err = ds.check_images(Split::Train).unwrap_err().to_string();
+        assert!(err.contains("r_1.png") && err.contains("truncated"), "{err}");
+        write_image(&dir2.join("train/r_1.png"), &Image::new(9, 8, 4)).unwrap();
+        let err = ds.check_images(Split::Train).unwrap_err().to_string();
+        assert!(err.contains("r_1.png") && err.contains("9×8"), "{err}");
+        write_image(&dir2.join("train/r_1.png"), &Image::new(8, 8, 4)).unwrap();
+        ds.check_images(Split::Train).unwrap();
         // An image size out of range or not a whole number.
         for (bad, key) in
             [(r#""w": 0, "h": 4"#, "w, h"), (r#""w": 100000, "h": 4"#, "w, h"), (r#""w": 16.5, "h": 4"#, "w")]

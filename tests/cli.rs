@@ -147,3 +147,28 @@ fn truncated_training_image_is_refused_before_anything_is_written() {
     assert!(err.contains("train_001/rgba.png") && err.contains("truncated") && !err.contains("panicked"), "{err}");
     assert!(!out.exists(), "a bad image left {}", out.display());
 }
+
+/// A run folder without `config.toml` (a 2DGS output) names the missing dataset instead of an
+/// empty path, and `-r 0` on eval and render names the flag; nothing is written.
+#[test]
+fn run_without_a_dataset_and_zero_resolution_are_named() {
+    let dir = temp_dir("nocfg");
+    let run = dir.join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let surfels = radiogs::surfels::Surfels::random_in_box(4, [-1.0; 3], [1.0; 3], 1);
+    radiogs::io::ply::write_ply(&run.join("point_cloud.ply"), &surfels).unwrap();
+    let (run_s, out) = (run.to_str().unwrap(), dir.join("out"));
+    let (code, _, err) = radiogs(&["render", "--run", run_s, "--out", out.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains(run_s) && err.contains("config.toml") && err.contains("--cameras"), "{err}");
+    assert!(!err.contains(": :") && !err.contains("panicked"), "{err}");
+    for args in [
+        vec!["eval", "--run", run_s, "-r", "0"],
+        vec!["render", "--run", run_s, "-r", "0", "--out", out.to_str().unwrap()],
+    ] {
+        let (code, _, err) = radiogs(&args);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("--resolution 0") && err.contains("1..=16"), "{args:?}: {err}");
+    }
+    assert!(!out.exists() && !run.join("eval").exists(), "nothing is written on bad input");
+}

@@ -9,7 +9,7 @@ use crate::io::image::{Image, write_image};
 use crate::loss::{psnr, ssim_eval};
 use crate::raster::{self, Outputs, RasterSettings};
 use crate::surfels::Surfels;
-use crate::train::config::TrainConfig;
+use crate::train::config::{MAX_DOWNSCALE, TrainConfig};
 use anyhow::Context;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -533,6 +533,13 @@ fn eval_relight(
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if !(1..=1024).contains(&args.relight_samples) {
         anyhow::bail!("--relight-samples {}: must be 1..=1024", args.relight_samples);
+    }
+    if let Some(r) = args.resolution
+        && !(1..=MAX_DOWNSCALE).contains(&r)
+    {
+        anyhow::bail!(
+            "-r/--resolution {r}: the downscale factor of the test images must be in 1..={MAX_DOWNSCALE} (1 = full size)"
+        );
     }
     if args.relight_bounces == 0 {
         anyhow::bail!("--relight-bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");

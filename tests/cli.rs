@@ -172,3 +172,25 @@ fn run_without_a_dataset_and_zero_resolution_are_named() {
     }
     assert!(!out.exists() && !run.join("eval").exists(), "nothing is written on bad input");
 }
+
+/// `--json -` writes the metrics to standard output (it wrote a file named `-`).
+#[test]
+fn eval_json_dash_is_standard_output() {
+    let dir = temp_dir("json-dash");
+    let data = tiny_dataset(&dir);
+    let run = dir.join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let surfels = radiogs::surfels::Surfels::random_in_box(50, [-1.0; 3], [1.0; 3], 1);
+    radiogs::io::ply::write_ply(&run.join("point_cloud.ply"), &surfels).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_radiogs"))
+        .args(["eval", "--run", run.to_str().unwrap(), "--data", data.to_str().unwrap(), "--json", "-"])
+        .current_dir(&dir)
+        .output()
+        .expect("run radiogs");
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    let json: serde_json::Value = serde_json::from_str(&stdout).expect("stdout is one JSON document");
+    assert_eq!(json["views"], 1, "{stdout}");
+    assert!(json["mean"]["psnr"].is_number(), "{stdout}");
+    assert!(!dir.join("-").exists() && !run.join("eval/metrics.json").exists());
+}

@@ -23,7 +23,8 @@ pub struct EvalArgs {
     /// Dataset folder (defaults to the run's training data).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Where to write metrics (default RUN/eval/metrics.json).
+    /// Where to write metrics (default RUN/eval/metrics.json; `-`: all of them to standard
+    /// output instead of their means).
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// Evaluate only the first N test views (0 = all).
@@ -724,8 +725,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             o.extend(extra);
         }
     }
+    let text = serde_json::to_string_pretty(&summary)?;
+    if args.json.as_deref() == Some(Path::new("-")) {
+        println!("{text}");
+        return Ok(());
+    }
     let path = args.json.clone().unwrap_or_else(|| out_dir.join("metrics.json"));
-    crate::io::atomic::write_atomic(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    crate::io::atomic::write_atomic(&path, text.as_bytes())?;
     println!("{}", serde_json::to_string_pretty(&summary["mean"])?);
     eprintln!("metrics → {}", path.display());
     Ok(())

@@ -194,3 +194,46 @@ fn eval_json_dash_is_standard_output() {
     assert!(json["mean"]["psnr"].is_number(), "{stdout}");
     assert!(!dir.join("-").exists() && !run.join("eval/metrics.json").exists());
 }
+
+/// Input that is read but may not mean what it says is accepted with a warning naming the file
+/// and field: an env map that is not twice as wide as high, a TensoIR camera convention that is
+/// not Blender's (both were accepted silently).
+#[test]
+fn doubtful_env_maps_and_camera_conventions_are_warned_about() {
+    let dir = temp_dir("warn");
+    let env = dir.join("wide.exr");
+    radiogs::envmap::EnvMap::constant(48, 16, [0.5; 3]).save(&env).unwrap();
+    let data = dir.join("data");
+    let (code, _, err) = radiogs(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--res",
+        "8",
+        "--train-views",
+        "1",
+        "--test-views",
+        "1",
+        "--spp",
+        "1",
+        "--relight-envs",
+        "studio",
+        "--envmap",
+        env.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("wide.exr: size: 48×16 is not twice as wide as high"), "{err}");
+
+    // The same data as TensoIR folders only, one view's convention changed.
+    std::fs::remove_file(data.join("transforms_train.json")).unwrap();
+    std::fs::remove_file(data.join("transforms_test.json")).unwrap();
+    let (code, _, err) = radiogs(&["info", "--data", data.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!err.contains("convention"), "{err}");
+    let meta = data.join("train_000/metadata.json");
+    let text = std::fs::read_to_string(&meta).unwrap().replace("blender_camera_to_world", "opencv");
+    std::fs::write(&meta, text).unwrap();
+    let (code, _, err) = radiogs(&["info", "--data", data.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("train_000/metadata.json: convention: \"opencv\" is not understood and is ignored"), "{err}");
+}

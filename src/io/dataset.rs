@@ -471,12 +471,37 @@ fn read_tensoir_split(root: &Path, split: Split) -> Result<Vec<View>> {
         .filter(|p| p.is_dir() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with(&prefix)))
         .collect();
     folders.sort();
-    folders.iter().map(|folder| read_tensoir_view(folder)).collect()
+    let mut views = Vec::with_capacity(folders.len());
+    let mut unknown: Vec<(PathBuf, String)> = Vec::new();
+    for folder in &folders {
+        let (view, convention) = read_tensoir_view(folder)?;
+        views.push(view);
+        unknown.extend(convention.map(|c| (folder.join("metadata.json"), c)));
+    }
+    // Nothing says what another convention would mean (TensoIR's files have none; radiogs
+    // synth writes CONVENTION): the matrix is read as Blender's all the same, and said so.
+    if let Some((path, value)) = unknown.first() {
+        tracing::warn!(
+            "{}: convention: {value} is not understood and is ignored ({} of {} {} views): cam_transform_mat is read \
+             as '{CONVENTION}' (camera-to-world, OpenGL camera axes: looking along -z, +y up)",
+            path.display(),
+            unknown.len(),
+            views.len(),
+            split.name()
+        );
+    }
+    Ok(views)
 }
 
-fn read_tensoir_view(folder: &Path) -> Result<View> {
+/// The camera convention of a TensoIR `metadata.json` that radiogs reads (and writes).
+const CONVENTION: &str = "blender_camera_to_world";
+
+/// A view's camera and files, and its `convention` when one is given that is not
+/// [`CONVENTION`] (as written in the file).
+fn read_tensoir_view(folder: &Path) -> Result<(View, Option<String>)> {
     let meta_path = folder.join("metadata.json");
     let meta = read_json(&meta_path)?;
+    let convention = meta.get("convention").filter(|c| c.as_str() != Some(CONVENTION)).map(|c| c.to_string());
     let matrix =
         meta.get("cam_transform_mat").ok_or_else(|| Error::format(&meta_path, "cam_transform_mat", "missing"))?;
     let values: Vec<f64> = match matrix {
@@ -503,13 +528,14 @@ fn read_tensoir_view(folder: &Path) -> Result<View> {
     let name = folder.file_name().unwrap_or_default().to_string_lossy().to_string();
     let camera = Camera::from_blender(name, c2w, w as u32, h as u32, angle)
         .map_err(|e| camera_error(&meta_path, "cam_transform_mat", e))?;
-    Ok(View {
+    let view = View {
         camera,
         image_path: folder.join("rgba.png"),
         folder: folder.to_path_buf(),
         file_size: (w as u32, h as u32),
         downscale: 1,
-    })
+    };
+    Ok((view, convention))
 }
 
 #[cfg(test)]

@@ -576,6 +576,27 @@ mod tests {
         assert!(ds.summary().contains("3 train / 0 test views at 8×8"));
     }
 
+    /// Grey and grey-alpha training images beside RGBA ones load as RGBA (grey in every
+    /// colour channel, alpha 1 when the file has none).
+    #[test]
+    fn grey_images_load_beside_rgba_ones() {
+        let dir = temp_dir("grey");
+        write_blender(&dir, 3, 4);
+        let mut grey = Image::new(4, 4, 1);
+        grey.data.iter_mut().enumerate().for_each(|(i, v)| *v = i as f32 / 15.0);
+        write_image(&dir.join("train/r_1.png"), &grey).unwrap();
+        let mut grey_alpha = Image::new(4, 4, 2);
+        grey_alpha.data.chunks_exact_mut(2).for_each(|p| p.copy_from_slice(&[0.6, 0.2]));
+        write_image(&dir.join("train/r_2.png"), &grey_alpha).unwrap();
+        let ds = Dataset::open(&dir).unwrap();
+        ds.check_images(Split::Train).unwrap();
+        let images = ds.load_images(Split::Train).unwrap();
+        assert!(images.iter().all(|img| img.channels == 4 && img.data.len() == 64));
+        let (g, ga) = (images[1].pixel(3, 3), images[2].pixel(0, 0));
+        assert!(g[0] == 1.0 && g[1] == 1.0 && g[2] == 1.0 && g[3] == 1.0, "{g:?}");
+        assert!((ga[0] - 0.6).abs() < 3e-3 && ga[0] == ga[2] && (ga[3] - 0.2).abs() < 3e-3, "{ga:?}");
+    }
+
     /// Frames whose images share a file name get distinct view names (outputs are written by
     /// name): the folder first, then the frame index; distinct names stay as they are.
     #[test]

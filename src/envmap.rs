@@ -54,6 +54,17 @@ impl EnvMap {
         if img.width < 2 || img.height < 1 {
             return Err(Error::format(path, "size", format!("{}×{} is too small", img.width, img.height)));
         }
+        // A lat-long map spans 360° by 180°: another shape is read over the whole sphere all
+        // the same (stretched), which a cube-map cross or a cropped panorama is not.
+        if img.width != 2 * img.height {
+            tracing::warn!(
+                "{}: size: {}×{} is not twice as wide as high; read as an equirectangular map over the whole \
+                 sphere all the same (a cube map or a cropped panorama lights the scene wrongly)",
+                path.display(),
+                img.width,
+                img.height
+            );
+        }
         let mut texels: Vec<[f32; 3]> = img.data.chunks_exact(4).map(|p| [p[0], p[1], p[2]]).collect();
         // Finite but absurd values (a float map's 3e38) overflow the shading's sums and priors.
         let brightest = texels.iter().flatten().fold(0.0f32, |m, v| m.max(*v));

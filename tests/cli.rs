@@ -110,3 +110,130 @@ fn zero_intervals_are_refused_by_name() {
         assert!(!out.exists(), "{flag} 0 left {}", out.display());
     }
 }
+
+/// A tiny synthetic dataset (16², 2 training views, 1 test view) in `dir/data`.
+fn tiny_dataset(dir: &std::path::Path) -> std::path::PathBuf {
+    let data = dir.join("data");
+    let (code, _, err) = radiogs(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--res",
+        "16",
+        "--train-views",
+        "2",
+        "--test-views",
+        "1",
+        "--spp",
+        "1",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    data
+}
+
+/// A training image cut short (its header whole) is refused by name before the run folder is
+/// written (it used to fail when the images loaded, after `config.toml` was written).
+#[test]
+fn truncated_training_image_is_refused_before_anything_is_written() {
+    let dir = temp_dir("truncated");
+    let data = tiny_dataset(&dir);
+    let image = data.join("train_001/rgba.png");
+    let bytes = std::fs::read(&image).unwrap();
+    std::fs::write(&image, &bytes[..bytes.len() / 2]).unwrap();
+    let out = dir.join("run");
+    let (code, _, err) =
+        radiogs(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iters", "2"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("train_001/rgba.png") && err.contains("truncated") && !err.contains("panicked"), "{err}");
+    assert!(!out.exists(), "a bad image left {}", out.display());
+}
+
+/// A run folder without `config.toml` (a 2DGS output) names the missing dataset instead of an
+/// empty path, and `-r 0` on eval and render names the flag; nothing is written.
+#[test]
+fn run_without_a_dataset_and_zero_resolution_are_named() {
+    let dir = temp_dir("nocfg");
+    let run = dir.join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let surfels = radiogs::surfels::Surfels::random_in_box(4, [-1.0; 3], [1.0; 3], 1);
+    radiogs::io::ply::write_ply(&run.join("point_cloud.ply"), &surfels).unwrap();
+    let (run_s, out) = (run.to_str().unwrap(), dir.join("out"));
+    let (code, _, err) = radiogs(&["render", "--run", run_s, "--out", out.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains(run_s) && err.contains("config.toml") && err.contains("--cameras"), "{err}");
+    assert!(!err.contains(": :") && !err.contains("panicked"), "{err}");
+    for args in [
+        vec!["eval", "--run", run_s, "-r", "0"],
+        vec!["render", "--run", run_s, "-r", "0", "--out", out.to_str().unwrap()],
+    ] {
+        let (code, _, err) = radiogs(&args);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("--resolution 0") && err.contains("1..=16"), "{args:?}: {err}");
+    }
+    assert!(!out.exists() && !run.join("eval").exists(), "nothing is written on bad input");
+}
+
+/// `--json -` writes the metrics to standard output (it wrote a file named `-`).
+#[test]
+fn eval_json_dash_is_standard_output() {
+    let dir = temp_dir("json-dash");
+    let data = tiny_dataset(&dir);
+    let run = dir.join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let surfels = radiogs::surfels::Surfels::random_in_box(50, [-1.0; 3], [1.0; 3], 1);
+    radiogs::io::ply::write_ply(&run.join("point_cloud.ply"), &surfels).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_radiogs"))
+        .args(["eval", "--run", run.to_str().unwrap(), "--data", data.to_str().unwrap(), "--json", "-"])
+        .current_dir(&dir)
+        .output()
+        .expect("run radiogs");
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    let json: serde_json::Value = serde_json::from_str(&stdout).expect("stdout is one JSON document");
+    assert_eq!(json["views"], 1, "{stdout}");
+    assert!(json["mean"]["psnr"].is_number(), "{stdout}");
+    assert!(!dir.join("-").exists() && !run.join("eval/metrics.json").exists());
+}
+
+/// Input that is read but may not mean what it says is accepted with a warning naming the file
+/// and field: an env map that is not twice as wide as high, a TensoIR camera convention that is
+/// not Blender's (both were accepted silently).
+#[test]
+fn doubtful_env_maps_and_camera_conventions_are_warned_about() {
+    let dir = temp_dir("warn");
+    let env = dir.join("wide.exr");
+    radiogs::envmap::EnvMap::constant(48, 16, [0.5; 3]).save(&env).unwrap();
+    let data = dir.join("data");
+    let (code, _, err) = radiogs(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--res",
+        "8",
+        "--train-views",
+        "1",
+        "--test-views",
+        "1",
+        "--spp",
+        "1",
+        "--relight-envs",
+        "studio",
+        "--envmap",
+        env.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("wide.exr: size: 48×16 is not twice as wide as high"), "{err}");
+
+    // The same data as TensoIR folders only, one view's convention changed.
+    std::fs::remove_file(data.join("transforms_train.json")).unwrap();
+    std::fs::remove_file(data.join("transforms_test.json")).unwrap();
+    let (code, _, err) = radiogs(&["info", "--data", data.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!err.contains("convention"), "{err}");
+    let meta = data.join("train_000/metadata.json");
+    let text = std::fs::read_to_string(&meta).unwrap().replace("blender_camera_to_world", "opencv");
+    std::fs::write(&meta, text).unwrap();
+    let (code, _, err) = radiogs(&["info", "--data", data.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("train_000/metadata.json: convention: \"opencv\" is not understood and is ignored"), "{err}");
+}

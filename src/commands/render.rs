@@ -9,6 +9,7 @@
 
 use crate::io::image::{Image, write_image};
 use crate::raster::{self, Outputs, RasterSettings};
+use crate::train::config::MAX_DOWNSCALE;
 use anyhow::{Context, bail};
 use std::path::PathBuf;
 
@@ -123,6 +124,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             bail!("--filter-inv-square {f}: must be a positive number (2 = 2DGS, 8 = radiogs's default)");
         }
     }
+    if let Some(r) = args.resolution
+        && !(1..=MAX_DOWNSCALE).contains(&r)
+    {
+        bail!(
+            "-r/--resolution {r}: the downscale factor of the run's test images must be in 1..={MAX_DOWNSCALE} (1 = full size)"
+        );
+    }
     if !(1..=raster::MAX_WINDOW).contains(&args.k) {
         bail!("--k {}: the sorting window must be in 1..={}", args.k, raster::MAX_WINDOW);
     }
@@ -142,6 +150,10 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                     let root = cameras.parent().map(PathBuf::from).unwrap_or_default();
                     crate::io::dataset::read_transforms_sized(&root, cameras, size)?
                 }
+                None if cfg.data.as_os_str().is_empty() => bail!(
+                    "{}: the run has no config.toml naming its dataset; give --cameras transforms.json",
+                    run.display()
+                ),
                 None => {
                     crate::io::dataset::Dataset::open_downscaled(&cfg.data, args.resolution.unwrap_or(cfg.resolution))
                         .with_context(|| {

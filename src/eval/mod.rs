@@ -9,7 +9,7 @@ use crate::io::image::{Image, write_image};
 use crate::loss::{psnr, ssim_eval};
 use crate::raster::{self, Outputs, RasterSettings};
 use crate::surfels::Surfels;
-use crate::train::config::TrainConfig;
+use crate::train::config::{MAX_DOWNSCALE, TrainConfig};
 use anyhow::Context;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -23,7 +23,8 @@ pub struct EvalArgs {
     /// Dataset folder (defaults to the run's training data).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Where to write metrics (default RUN/eval/metrics.json).
+    /// Where to write metrics (default RUN/eval/metrics.json; `-`: all of them to standard
+    /// output instead of their means).
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// Evaluate only the first N test views (0 = all).
@@ -48,7 +49,8 @@ pub struct EvalArgs {
     pub resolution: Option<u32>,
 }
 
-/// The run's surfels: `point_cloud.ply`, else the newest nvs/init checkpoint's parameters.
+/// The run's surfels: `point_cloud.ply`, else the newest checkpoint's parameters (nvs, init
+/// or inverse), named in a warning.
 pub fn load_run_surfels(run: &Path) -> anyhow::Result<Surfels> {
     let ply = run.join("point_cloud.ply");
     if ply.is_file() {
@@ -56,15 +58,37 @@ pub fn load_run_surfels(run: &Path) -> anyhow::Result<Surfels> {
         s.sh_degree = s.sh_degree.max(0);
         return Ok(s);
     }
-    // An interrupted run has no PLY yet: its newest geometry checkpoint (nvs or init).
-    if let Some(ckpt) = crate::train::inverse::geometry_checkpoint(run) {
+    // An interrupted run has no PLY yet (or it was removed): the newest stage's checkpoint, so
+    // that an inverse stage's light is not paired with the geometry stage's surfels.
+    if let Some(ckpt) = newest_checkpoint(run) {
         let c = crate::train::checkpoint::Checkpoint::load(&ckpt)?;
-        return Ok(c.get_surfels(&ckpt, "params")?);
+        let surfels = c.get_surfels(&ckpt, "params")?;
+        warn_once(format!("{}: no point_cloud.ply; using the surfels of {}", run.display(), ckpt.display()));
+        return Ok(surfels);
     }
     anyhow::bail!(
-        "{}: no point_cloud.ply, checkpoint.bin or checkpoint_init.bin (is this a run folder?)",
+        "{}: no point_cloud.ply, checkpoint.bin, checkpoint_init.bin or checkpoint_inverse.bin (is this a run folder?)",
         run.display()
     )
+}
+
+/// The most recently written of the run's nvs, init and inverse checkpoints.
+fn newest_checkpoint(run: &Path) -> Option<PathBuf> {
+    let modified = |p: &PathBuf| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    crate::train::inverse::geometry_checkpoint(run)
+        .into_iter()
+        .chain(Some(crate::train::inverse::checkpoint_path(run)).filter(|p| p.is_file()))
+        .max_by_key(modified)
+}
+
+/// Warn once per process (a run's surfels are read by several loaders in one command).
+fn warn_once(message: String) {
+    static SAID: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+    let mut said = SAID.lock().unwrap_or_else(|e| e.into_inner());
+    if !said.contains(&message) {
+        tracing::warn!("{message}");
+        said.push(message);
+    }
 }
 
 /// The run's settings (`RUN/config.toml`), or defaults when absent.
@@ -511,6 +535,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if !(1..=1024).contains(&args.relight_samples) {
         anyhow::bail!("--relight-samples {}: must be 1..=1024", args.relight_samples);
     }
+    if let Some(r) = args.resolution
+        && !(1..=MAX_DOWNSCALE).contains(&r)
+    {
+        anyhow::bail!(
+            "-r/--resolution {r}: the downscale factor of the test images must be in 1..={MAX_DOWNSCALE} (1 = full size)"
+        );
+    }
     if args.relight_bounces == 0 {
         anyhow::bail!("--relight-bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");
     }
@@ -694,8 +725,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             o.extend(extra);
         }
     }
+    let text = serde_json::to_string_pretty(&summary)?;
+    if args.json.as_deref() == Some(Path::new("-")) {
+        println!("{text}");
+        return Ok(());
+    }
     let path = args.json.clone().unwrap_or_else(|| out_dir.join("metrics.json"));
-    crate::io::atomic::write_atomic(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    crate::io::atomic::write_atomic(&path, text.as_bytes())?;
     println!("{}", serde_json::to_string_pretty(&summary["mean"])?);
     eprintln!("metrics → {}", path.display());
     Ok(())
@@ -705,6 +741,32 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
+
+    /// Without a PLY the newest checkpoint of any stage gives the surfels: the inverse stage's
+    /// over an older nvs one (it used to take the nvs one, beside the inverse stage's light),
+    /// and the nvs one when it is the newer.
+    #[test]
+    fn a_run_without_its_ply_takes_the_newest_stages_checkpoint() {
+        use crate::train::checkpoint::Checkpoint;
+        let run = std::env::temp_dir().join(format!("radiogs-eval-ckpt-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&run);
+        std::fs::create_dir_all(&run).unwrap();
+        assert!(load_run_surfels(&run).unwrap_err().to_string().contains("checkpoint_inverse.bin"));
+        let write = |name: &str, count: usize, age_s: u64| {
+            let mut c = Checkpoint::default();
+            c.put_surfels("params", &Surfels::random_in_box(count, [0.0; 3], [1.0; 3], 1));
+            c.save(&run.join(name)).unwrap();
+            let when = std::time::SystemTime::now() - std::time::Duration::from_secs(age_s);
+            std::fs::File::options().write(true).open(run.join(name)).unwrap().set_modified(when).unwrap();
+        };
+        write("checkpoint.bin", 5, 100);
+        assert_eq!(load_run_surfels(&run).unwrap().len(), 5);
+        write("checkpoint_inverse.bin", 7, 10);
+        assert_eq!(load_run_surfels(&run).unwrap().len(), 7);
+        write("checkpoint.bin", 5, 1);
+        assert_eq!(load_run_surfels(&run).unwrap().len(), 5);
+        let _ = std::fs::remove_dir_all(&run);
+    }
 
     /// The same light scores 0; a light twice as bright scores ln 2 unless the albedo scale
     /// says the albedo was halved; a light that moved from the sides to the top is seen.

@@ -10,7 +10,7 @@
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
-use crate::io::image::{Image, read_rgba};
+use crate::io::image::{Image, check_image, read_rgba};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -125,17 +125,25 @@ impl View {
         self.load_file(&self.image_path)
     }
 
+    /// Decode the view's image in full and check its size, keeping nothing: a truncated or
+    /// corrupt file is found before a run folder is written, not when the images load.
+    pub fn check_image(&self) -> Result<()> {
+        let size = check_image(&self.image_path)?;
+        self.check_size(&self.image_path, size)
+    }
+
+    fn check_size(&self, path: &Path, (width, height): (u32, u32)) -> Result<()> {
+        let (w, h) = self.file_size;
+        if width != w || height != h {
+            return Err(Error::format(path, "size", format!("{width}×{height} but the camera says {w}×{h}")));
+        }
+        Ok(())
+    }
+
     /// Read one of the view's files, check its size and shrink it to the camera's.
     fn load_file(&self, path: &Path) -> Result<Image> {
         let img = read_rgba(path)?;
-        let (w, h) = self.file_size;
-        if img.width != w || img.height != h {
-            return Err(Error::format(
-                path,
-                "size",
-                format!("{}×{} but the camera says {}×{}", img.width, img.height, w, h),
-            ));
-        }
+        self.check_size(path, (img.width, img.height))?;
         Ok(img.downscale(self.downscale))
     }
 }
@@ -266,6 +274,12 @@ impl Dataset {
     /// Load every image of a split in parallel (RGBA, values as stored).
     pub fn load_images(&self, split: Split) -> Result<Vec<Image>> {
         self.views(split).par_iter().map(|v| v.load_image()).collect()
+    }
+
+    /// Decode every image of a split in parallel and check its size, keeping none (see
+    /// [`View::check_image`]); the first bad file is the error.
+    pub fn check_images(&self, split: Split) -> Result<()> {
+        self.views(split).par_iter().try_for_each(|v| v.check_image())
     }
 
     /// GT passes found in the first test view (or train view if no test split).
@@ -457,12 +471,37 @@ fn read_tensoir_split(root: &Path, split: Split) -> Result<Vec<View>> {
         .filter(|p| p.is_dir() && p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with(&prefix)))
         .collect();
     folders.sort();
-    folders.iter().map(|folder| read_tensoir_view(folder)).collect()
+    let mut views = Vec::with_capacity(folders.len());
+    let mut unknown: Vec<(PathBuf, String)> = Vec::new();
+    for folder in &folders {
+        let (view, convention) = read_tensoir_view(folder)?;
+        views.push(view);
+        unknown.extend(convention.map(|c| (folder.join("metadata.json"), c)));
+    }
+    // Nothing says what another convention would mean (TensoIR's files have none; radiogs
+    // synth writes CONVENTION): the matrix is read as Blender's all the same, and said so.
+    if let Some((path, value)) = unknown.first() {
+        tracing::warn!(
+            "{}: convention: {value} is not understood and is ignored ({} of {} {} views): cam_transform_mat is read \
+             as '{CONVENTION}' (camera-to-world, OpenGL camera axes: looking along -z, +y up)",
+            path.display(),
+            unknown.len(),
+            views.len(),
+            split.name()
+        );
+    }
+    Ok(views)
 }
 
-fn read_tensoir_view(folder: &Path) -> Result<View> {
+/// The camera convention of a TensoIR `metadata.json` that radiogs reads (and writes).
+const CONVENTION: &str = "blender_camera_to_world";
+
+/// A view's camera and files, and its `convention` when one is given that is not
+/// [`CONVENTION`] (as written in the file).
+fn read_tensoir_view(folder: &Path) -> Result<(View, Option<String>)> {
     let meta_path = folder.join("metadata.json");
     let meta = read_json(&meta_path)?;
+    let convention = meta.get("convention").filter(|c| c.as_str() != Some(CONVENTION)).map(|c| c.to_string());
     let matrix =
         meta.get("cam_transform_mat").ok_or_else(|| Error::format(&meta_path, "cam_transform_mat", "missing"))?;
     let values: Vec<f64> = match matrix {
@@ -489,13 +528,14 @@ fn read_tensoir_view(folder: &Path) -> Result<View> {
     let name = folder.file_name().unwrap_or_default().to_string_lossy().to_string();
     let camera = Camera::from_blender(name, c2w, w as u32, h as u32, angle)
         .map_err(|e| camera_error(&meta_path, "cam_transform_mat", e))?;
-    Ok(View {
+    let view = View {
         camera,
         image_path: folder.join("rgba.png"),
         folder: folder.to_path_buf(),
         file_size: (w as u32, h as u32),
         downscale: 1,
-    })
+    };
+    Ok((view, convention))
 }
 
 #[cfg(test)]
@@ -534,6 +574,27 @@ mod tests {
         assert_eq!(ds.train.len(), 3);
         assert_eq!(ds.load_images(Split::Train).unwrap().len(), 3);
         assert!(ds.summary().contains("3 train / 0 test views at 8×8"));
+    }
+
+    /// Grey and grey-alpha training images beside RGBA ones load as RGBA (grey in every
+    /// colour channel, alpha 1 when the file has none).
+    #[test]
+    fn grey_images_load_beside_rgba_ones() {
+        let dir = temp_dir("grey");
+        write_blender(&dir, 3, 4);
+        let mut grey = Image::new(4, 4, 1);
+        grey.data.iter_mut().enumerate().for_each(|(i, v)| *v = i as f32 / 15.0);
+        write_image(&dir.join("train/r_1.png"), &grey).unwrap();
+        let mut grey_alpha = Image::new(4, 4, 2);
+        grey_alpha.data.chunks_exact_mut(2).for_each(|p| p.copy_from_slice(&[0.6, 0.2]));
+        write_image(&dir.join("train/r_2.png"), &grey_alpha).unwrap();
+        let ds = Dataset::open(&dir).unwrap();
+        ds.check_images(Split::Train).unwrap();
+        let images = ds.load_images(Split::Train).unwrap();
+        assert!(images.iter().all(|img| img.channels == 4 && img.data.len() == 64));
+        let (g, ga) = (images[1].pixel(3, 3), images[2].pixel(0, 0));
+        assert!(g[0] == 1.0 && g[1] == 1.0 && g[2] == 1.0 && g[3] == 1.0, "{g:?}");
+        assert!((ga[0] - 0.6).abs() < 3e-3 && ga[0] == ga[2] && (ga[3] - 0.2).abs() < 3e-3, "{ga:?}");
     }
 
     /// Frames whose images share a file name get distinct view names (outputs are written by
@@ -676,6 +737,19 @@ mod tests {
         std::fs::remove_file(dir2.join("train/r_0.png")).unwrap();
         let err = Dataset::open(&dir2).unwrap_err().to_string();
         assert!(err.contains("r_0.png"), "{err}");
+        // A training image cut short is found by the check that reads every image in full
+        // (the header alone, which gives the size, is still whole).
+        write_blender(&dir2, 2, 8);
+        let bytes = std::fs::read(dir2.join("train/r_1.png")).unwrap();
+        std::fs::write(dir2.join("train/r_1.png"), &bytes[..bytes.len() - 20]).unwrap();
+        let ds = Dataset::open(&dir2).unwrap();
+        let err = ds.check_images(Split::Train).unwrap_err().to_string();
+        assert!(err.contains("r_1.png") && err.contains("truncated"), "{err}");
+        write_image(&dir2.join("train/r_1.png"), &Image::new(9, 8, 4)).unwrap();
+        let err = ds.check_images(Split::Train).unwrap_err().to_string();
+        assert!(err.contains("r_1.png") && err.contains("9×8"), "{err}");
+        write_image(&dir2.join("train/r_1.png"), &Image::new(8, 8, 4)).unwrap();
+        ds.check_images(Split::Train).unwrap();
         // An image size out of range or not a whole number.
         for (bad, key) in
             [(r#""w": 0, "h": 4"#, "w, h"), (r#""w": 100000, "h": 4"#, "w, h"), (r#""w": 16.5, "h": 4"#, "w")]

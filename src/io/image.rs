@@ -214,6 +214,18 @@ pub fn read_rgba(path: &Path) -> Result<Image> {
     Ok(Image { width, height, channels: 4, data })
 }
 
+/// Decode an image in full and return its size, keeping no float copy: a truncated or corrupt
+/// file fails here as it would in [`read_rgba`] (with the same message), at the cost of the
+/// decode alone for PNG (float formats are read as [`read_rgba`] reads them, values checked).
+pub fn check_image(path: &Path) -> Result<(u32, u32)> {
+    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")) {
+        let img = open(path)?;
+        return Ok((img.width(), img.height()));
+    }
+    let img = read_rgba(path)?;
+    Ok((img.width, img.height))
+}
+
 /// Read an image and keep its first `channels` channels (1 = the first/luminance channel).
 pub fn read_channels(path: &Path, channels: usize) -> Result<Image> {
     Ok(read_rgba(path)?.take_channels(channels))

@@ -41,6 +41,19 @@ impl Scalar {
             _ => return None,
         })
     }
+    /// The PLY type name (as in headers).
+    fn name(self) -> &'static str {
+        match self {
+            Scalar::I8 => "char",
+            Scalar::U8 => "uchar",
+            Scalar::I16 => "short",
+            Scalar::U16 => "ushort",
+            Scalar::I32 => "int",
+            Scalar::U32 => "uint",
+            Scalar::F32 => "float",
+            Scalar::F64 => "double",
+        }
+    }
     fn size(self) -> usize {
         match self {
             Scalar::I8 | Scalar::U8 => 1,
@@ -78,9 +91,15 @@ pub struct PlyInfo {
 
 fn parse_header(path: &Path, bytes: &[u8]) -> Result<(Vec<Element>, usize)> {
     let bad = |field: &str, reason: &str| Error::format(path, field, reason);
-    let end = bytes
-        .windows(11)
-        .position(|w| w == b"end_header\n")
+    // The header's lines end in LF or CRLF (files written on Windows).
+    let (end, body) = bytes
+        .windows(10)
+        .enumerate()
+        .find_map(|(i, w)| match (w, &bytes[i + 10..]) {
+            (b"end_header", [b'\n', ..]) => Some((i, i + 11)),
+            (b"end_header", [b'\r', b'\n', ..]) => Some((i, i + 12)),
+            _ => None,
+        })
         .ok_or_else(|| bad("header", "no 'end_header' line (not a PLY file, or truncated)"))?;
     let header = std::str::from_utf8(&bytes[..end]).map_err(|_| bad("header", "not ASCII text"))?;
     let mut lines = header.lines().map(str::trim);
@@ -112,7 +131,7 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<(Vec<Element>, usize)> {
             _ => return Err(bad("header", &format!("unexpected line '{line}'"))),
         }
     }
-    Ok((elements, end + 11))
+    Ok((elements, body))
 }
 
 fn vertex_layout<'a>(path: &Path, elements: &'a [Element]) -> Result<(&'a Element, usize)> {
@@ -190,13 +209,27 @@ pub fn read_ply(path: &Path) -> Result<Surfels> {
     let start = body + offset;
     let needed = vertex.count.checked_mul(stride).and_then(|n| n.checked_add(start));
     if needed.is_none_or(|n| n > bytes.len()) {
+        // Too short for the header's layout: cut short, or the header's types (the bytes of a
+        // surfel add up from them) are not those of the data.
+        let present = bytes.len().saturating_sub(start);
+        let not_float: Vec<String> = vertex
+            .properties
+            .iter()
+            .filter(|p| p.1 != Scalar::F32)
+            .map(|(name, ty)| format!("{name} is {}", ty.name()))
+            .collect();
+        let why = if not_float.is_empty() {
+            "the file is truncated".to_string()
+        } else {
+            format!("truncated, or the header's types are not the data's ({}, not float)", not_float.join(", "))
+        };
         return Err(Error::format(
             path,
             "vertex data",
             format!(
-                "truncated: {} surfels of {stride} bytes need more than the {} bytes present",
+                "{} surfels of {stride} bytes need {} bytes, {present} present: {why}",
                 vertex.count,
-                bytes.len() - body
+                vertex.count.saturating_mul(stride)
             ),
         ));
     }
@@ -385,6 +418,35 @@ mod tests {
         assert_eq!((info.count, info.sh_degree, info.has_material), (57, 3, true));
     }
 
+    /// Double properties are read (as f32), and a header with CRLF line ends is read as one
+    /// with LF (it was refused as having no 'end_header').
+    #[test]
+    fn double_properties_and_crlf_headers_load() {
+        let s = random_surfels(3);
+        let path = temp("double");
+        write_ply(&path, &s).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let body = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+        let header = String::from_utf8_lossy(&bytes[..body]).to_string();
+        let names: Vec<&str> = header.lines().filter_map(|l| l.strip_prefix("property float ")).collect();
+        let k = names.iter().position(|n| *n == "opacity").unwrap();
+        let mut doubled = header.replace("property float opacity", "property double opacity").into_bytes();
+        for row in bytes[body..].chunks_exact(4 * names.len()) {
+            doubled.extend_from_slice(&row[..4 * k]);
+            let v = f32::from_le_bytes(row[4 * k..4 * k + 4].try_into().unwrap());
+            doubled.extend((v as f64).to_le_bytes());
+            doubled.extend_from_slice(&row[4 * k + 4..]);
+        }
+        std::fs::write(&path, &doubled).unwrap();
+        assert_eq!(read_ply(&path).unwrap(), s);
+        let mut crlf = header.replace('\n', "\r\n").into_bytes();
+        crlf.extend_from_slice(&bytes[body..]);
+        std::fs::write(&path, &crlf).unwrap();
+        assert_eq!(read_ply(&path).unwrap(), s);
+        assert_eq!(read_ply_info(&path).unwrap().count, 3);
+        std::fs::remove_dir_all(path.parent().unwrap()).ok();
+    }
+
     /// A file in the exact layout of the official 2DGS `save_ply` (no material fields).
     #[test]
     fn reads_official_2dgs_layout() {
@@ -443,6 +505,15 @@ mod tests {
         std::fs::write(&path, &bytes[..bytes.len() - 10]).unwrap();
         let err = read_ply(&path).unwrap_err().to_string();
         assert!(err.contains("truncated"), "{err}");
+
+        // A header that says double where the data holds float names the property.
+        let body = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+        let text = String::from_utf8_lossy(&bytes[..body]).replace("property float opacity", "property double opacity");
+        let mut lying = text.into_bytes();
+        lying.extend_from_slice(&bytes[body..]);
+        std::fs::write(&path, &lying).unwrap();
+        let err = read_ply(&path).unwrap_err().to_string();
+        assert!(err.contains("vertex data") && err.contains("opacity is double, not float"), "{err}");
 
         std::fs::write(&path, b"not a ply").unwrap();
         assert!(read_ply(&path).unwrap_err().to_string().contains("end_header"));

@@ -14,13 +14,16 @@ pub mod nvs;
 pub mod pbr_image;
 pub mod pbr_init;
 
-use crate::io::dataset::Dataset;
+use crate::io::dataset::{Dataset, Split};
 use config::{Stage, TrainConfig};
 
 /// `radiogs train`: validate, write `RUN/config.toml`, run the requested stage(s).
 pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     cfg.validate()?;
     let dataset = Dataset::open_downscaled(&cfg.data, cfg.resolution)?;
+    // A truncated or corrupt training image stops here, before anything is written (the
+    // stages read the images again; a decode costs little beside an iteration).
+    dataset.check_images(Split::Train)?;
     std::fs::create_dir_all(&cfg.out).map_err(|e| crate::Error::io(&cfg.out, e))?;
     if !cfg.resume && matches!(cfg.stage, Stage::Nvs | Stage::Init | Stage::All) {
         remove_stale_inverse_outputs(&cfg.out)?;

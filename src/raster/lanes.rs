@@ -39,7 +39,29 @@ impl Gather16 {
                 std::mem::transmute::<__m512, f32x16>(g)
             }
         }
-        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512f")))]
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx2", not(target_feature = "avx512f")))]
+        {
+            use std::arch::x86_64::*;
+            // SAFETY: avx2 is enabled at compile time; every live index is below `limit`
+            // (checked in `new`) ≤ base.len(), and masked-off lanes touch no memory. Two
+            // 8-lane gathers instead of 16 scalar loads assembled through the stack.
+            unsafe {
+                let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+                let live = _mm256_set1_epi32(self.live as i32);
+                let m_lo = _mm256_castsi256_ps(_mm256_cmpgt_epi32(live, lanes));
+                let m_hi = _mm256_castsi256_ps(_mm256_cmpgt_epi32(live, _mm256_add_epi32(lanes, _mm256_set1_epi32(8))));
+                let i_lo = _mm256_loadu_si256(self.idx.as_ptr() as *const __m256i);
+                let i_hi = _mm256_loadu_si256(self.idx.as_ptr().add(8) as *const __m256i);
+                let zero = _mm256_setzero_ps();
+                let lo = _mm256_mask_i32gather_ps::<4>(zero, base.as_ptr(), i_lo, m_lo);
+                let hi = _mm256_mask_i32gather_ps::<4>(zero, base.as_ptr(), i_hi, m_hi);
+                let mut out = [0.0f32; 16];
+                _mm256_storeu_ps(out.as_mut_ptr(), lo);
+                _mm256_storeu_ps(out.as_mut_ptr().add(8), hi);
+                f32x16::new(out)
+            }
+        }
+        #[cfg(not(all(target_arch = "x86_64", any(target_feature = "avx512f", target_feature = "avx2"))))]
         {
             f32x16::new(std::array::from_fn(|l| if l < self.live { base[self.idx[l] as usize] } else { 0.0 }))
         }
@@ -200,9 +222,12 @@ mod tests {
     fn gather_masks_dead_lanes_and_add_columns_touches_only_its_rows() {
         let base: Vec<f32> = (0..40).map(|i| i as f32 * 0.5).collect();
         let idx: [u32; 16] = std::array::from_fn(|l| (39 - 2 * l) as u32);
-        let g = Gather16::new(idx, 5, 40).from(&base).to_array();
-        for l in 0..16 {
-            assert_eq!(g[l], if l < 5 { base[idx[l] as usize] } else { 0.0 });
+        // Live counts on both sides of each 8-lane half (the AVX2 path gathers two halves).
+        for live in [0, 1, 5, 7, 8, 9, 15, 16] {
+            let g = Gather16::new(idx, live, 40).from(&base).to_array();
+            for l in 0..16 {
+                assert_eq!(g[l], if l < live { base[idx[l] as usize] } else { 0.0 }, "live {live}, lane {l}");
+            }
         }
         let stride = 7;
         let mut rows = vec![1.0f32; 20 * stride];
@@ -216,6 +241,22 @@ mod tests {
                 assert_eq!(rows[r * stride + k], want, "row {r}, entry {k}");
             }
         }
+    }
+
+    #[test]
+    fn shift_down_moves_lanes() {
+        let x = f32x16::new(std::array::from_fn(|l| l as f32 + 1.0));
+        fn check<const S: i32>(x: f32x16) {
+            let got = shift_down::<S>(x).to_array();
+            for l in 0..16 {
+                let want = if l + (S as usize) < 16 { (l + S as usize) as f32 + 1.0 } else { 0.0 };
+                assert_eq!(got[l], want, "S = {S}, lane {l}");
+            }
+        }
+        check::<1>(x);
+        check::<2>(x);
+        check::<4>(x);
+        check::<8>(x);
     }
 
     #[test]

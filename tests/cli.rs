@@ -111,23 +111,22 @@ fn zero_intervals_are_refused_by_name() {
     }
 }
 
+/// `radiogs synth` of a tiny dataset into `data` (res², `train_views` training views, 1 test
+/// view, 1 spp, then `extra` arguments); returns its standard error.
+fn synth_tiny(data: &std::path::Path, res: &str, train_views: &str, extra: &[&str]) -> String {
+    let mut args =
+        vec!["synth", "--out", data.to_str().unwrap(), "--res", res, "--train-views", train_views, "--test-views", "1"];
+    args.extend_from_slice(&["--spp", "1"]);
+    args.extend_from_slice(extra);
+    let (code, _, err) = radiogs(&args);
+    assert_eq!(code, 0, "{err}");
+    err
+}
+
 /// A tiny synthetic dataset (16², 2 training views, 1 test view) in `dir/data`.
 fn tiny_dataset(dir: &std::path::Path) -> std::path::PathBuf {
     let data = dir.join("data");
-    let (code, _, err) = radiogs(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--res",
-        "16",
-        "--train-views",
-        "2",
-        "--test-views",
-        "1",
-        "--spp",
-        "1",
-    ]);
-    assert_eq!(code, 0, "{err}");
+    synth_tiny(&data, "16", "2", &[]);
     data
 }
 
@@ -204,24 +203,7 @@ fn doubtful_env_maps_and_camera_conventions_are_warned_about() {
     let env = dir.join("wide.exr");
     radiogs::envmap::EnvMap::constant(48, 16, [0.5; 3]).save(&env).unwrap();
     let data = dir.join("data");
-    let (code, _, err) = radiogs(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--res",
-        "8",
-        "--train-views",
-        "1",
-        "--test-views",
-        "1",
-        "--spp",
-        "1",
-        "--relight-envs",
-        "studio",
-        "--envmap",
-        env.to_str().unwrap(),
-    ]);
-    assert_eq!(code, 0, "{err}");
+    let err = synth_tiny(&data, "8", "1", &["--relight-envs", "studio", "--envmap", env.to_str().unwrap()]);
     assert!(err.contains("wide.exr: size: 48×16 is not twice as wide as high"), "{err}");
 
     // The same data as TensoIR folders only, one view's convention changed.

@@ -29,6 +29,19 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// How a relit run's frame is rasterised: SH colour only, back faces culled (the surfels are
+/// oriented), white background, the run's window and screen-space filter.
+pub fn relit_frame_settings(cfg: &crate::train::config::TrainConfig) -> RasterSettings {
+    RasterSettings {
+        window: cfg.window,
+        filter_inv_square: cfg.filter_inv_square,
+        two_sided: false,
+        background: [1.0; 3],
+        outputs: Outputs::colour_only(),
+        ..RasterSettings::default()
+    }
+}
+
 pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
     let cfg = crate::eval::load_run_config(&args.run)?;
     let surfels = crate::eval::load_run_surfels(&args.run)?;
@@ -40,14 +53,7 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
     let mut raster_ms = serde_json::Map::new();
     for &size in &args.sizes {
         let cam = view.camera.scaled(size, size);
-        let settings = RasterSettings {
-            window: cfg.window,
-            filter_inv_square: cfg.filter_inv_square,
-            two_sided: false,
-            background: [1.0; 3],
-            outputs: Outputs::colour_only(),
-            ..RasterSettings::default()
-        };
+        let settings = relit_frame_settings(&cfg);
         let _ = raster::render(&surfels, &cam, &settings, None);
         let times: Vec<f64> = (0..repeats)
             .map(|_| {

@@ -438,6 +438,7 @@ pub(crate) trait Window {
 
 /// Up to 32 entries in a ring buffer sorted from `head`; insertion shifts 12 bytes per entry.
 /// Candidates arrive in roughly increasing depth, so most insertions append.
+#[derive(Clone, Copy)]
 pub(crate) struct RingWindow {
     wz: [f32; RING],
     ws: [u32; RING],
@@ -540,6 +541,7 @@ impl Window for SingleWindow {
 /// lane permute and one masked move per register, so an unpredictable insertion depth costs
 /// no branch misses (the ring's shift loop mispredicts on every out-of-order hit).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+#[derive(Clone, Copy)]
 pub(crate) struct RegWindow {
     z: std::arch::x86_64::__m512,
     s: std::arch::x86_64::__m512i,
@@ -667,6 +669,7 @@ impl Window for RegWindow {
 /// out-of-order hit, was the costliest part of a relit frame). Masks are whole lanes (all ones
 /// or zero) moved by the same lane permute as the data; lanes at or above len hold z = +∞.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+#[derive(Clone, Copy)]
 pub(crate) struct RegWindow8 {
     z: std::arch::x86_64::__m256,
     s: std::arch::x86_64::__m256i,
@@ -1553,66 +1556,17 @@ mod window_tests {
         }
     }
 
-    /// The AVX2 register window keeps exactly the ring window's order, as the AVX-512 one
-    /// (below): random inserts with ties, pops and front replacements up to K = 8, compared
-    /// entry by entry after every operation.
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
-    #[test]
-    fn avx2_register_window_matches_ring_window() {
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(13);
-        for k in [1usize, 2, 3, 5, 7, 8] {
-            let (mut ring, mut reg) = (RingWindow::new(), RegWindow8::new());
+    /// Drive a window and the ring window with the same random inserts (with ties, beyond and
+    /// below every entry), pops and front replacements (the register windows' one-shift
+    /// `replace_front` against the ring's pop then insert) for each K, comparing the whole order
+    /// after every operation.
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    fn matches_ring_window<W: Window + Copy>(new: impl Fn() -> W, ks: &[usize], seed: u64) {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        for &k in ks {
+            let (mut ring, mut reg) = (RingWindow::new(), new());
             let mut slot = 0u32;
             for _ in 0..3000 {
-                let z = match rng.random_range(0..10) {
-                    0..3 => 0.5,
-                    3 => 1.0 + rng.random::<f32>(),
-                    4 => -rng.random::<f32>(),
-                    _ => rng.random::<f32>(),
-                };
-                slot = slot.wrapping_add(1 + rng.random_range(0..100_000));
-                let alpha = rng.random::<f32>();
-                let op = rng.random::<f32>();
-                if ring.len() > 0 && (ring.len() == k || op < 0.6) {
-                    assert_eq!(ring.front_slot(), reg.front_slot());
-                    assert_eq!(ring.front_z(), reg.front_z());
-                    assert_eq!(ring.front_alpha(), reg.front_alpha());
-                    if op < 0.3 {
-                        ring.pop_front();
-                        reg.pop_front();
-                    } else {
-                        ring.pop_front();
-                        ring.insert(z, slot, alpha);
-                        reg.replace_front(z, slot, alpha);
-                    }
-                } else {
-                    ring.insert(z, slot, alpha);
-                    reg.insert(z, slot, alpha);
-                }
-                assert_eq!(ring.len(), reg.len());
-                let (mut a, mut b) = (RingWindow { ..ring }, RegWindow8 { ..reg });
-                while a.len() > 0 {
-                    assert_eq!(a.front_slot(), b.front_slot(), "k = {k}");
-                    assert_eq!((a.front_z(), a.front_alpha()), (b.front_z(), b.front_alpha()));
-                    a.pop_front();
-                    b.pop_front();
-                }
-            }
-        }
-    }
-
-    /// The register window keeps exactly the ring window's order: random inserts (with ties),
-    /// pops and replacements of the front (its one-shift `replace_front` against the ring's
-    /// pop then insert), compared entry by entry after every operation.
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
-    #[test]
-    fn register_window_matches_ring_window() {
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
-        for k in [1usize, 2, 5, 8, 16] {
-            let (mut ring, mut reg) = (RingWindow::new(), RegWindow::new());
-            let mut slot = 0u32;
-            for _ in 0..3000 {
-                // Ties, beyond every entry (lands on top), below every entry, anywhere.
                 let z = match rng.random_range(0..10) {
                     0..3 => 0.5,
                     3 => 1.0 + rng.random::<f32>(),
@@ -1641,7 +1595,7 @@ mod window_tests {
                 }
                 assert_eq!(ring.len(), reg.len());
                 // Compare the whole order by draining copies.
-                let (mut a, mut b) = (RingWindow { ..ring }, RegWindow { ..reg });
+                let (mut a, mut b) = (ring, reg);
                 while a.len() > 0 {
                     assert_eq!(a.front_slot(), b.front_slot(), "k = {k}");
                     assert_eq!((a.front_z(), a.front_alpha()), (b.front_z(), b.front_alpha()));
@@ -1650,6 +1604,20 @@ mod window_tests {
                 }
             }
         }
+    }
+
+    /// The AVX2 register window (K ≤ 8) keeps exactly the ring window's order.
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    #[test]
+    fn avx2_register_window_matches_ring_window() {
+        matches_ring_window(RegWindow8::new, &[1, 2, 3, 5, 7, 8], 13);
+    }
+
+    /// The AVX-512 register window (K ≤ 16) keeps exactly the ring window's order.
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    #[test]
+    fn register_window_matches_ring_window() {
+        matches_ring_window(RegWindow::new, &[1, 2, 5, 8, 16], 11);
     }
 }
 

@@ -338,19 +338,23 @@ pub(crate) fn exp_nonpositive(x: f32x16) -> f32x16 {
     let z = c3.mul_add(y, c2).mul_add(y2, c5.mul_add(y, c4).mul_add(y4, c1.mul_add(y, c0)));
     let z = z.mul_add(y * y, y);
     // 2^r from its bit pattern (r ∈ [−126, 0]: a normal exponent).
-    let biased: wide::i32x16 = bytemuck_cast(r + splat(127.0 + 8_388_608.0));
-    let pow2: f32x16 = bytemuck_cast(biased << 23);
+    let pow2 = f32_from_bits(f32_bits(r + splat(127.0 + 8_388_608.0)) << 23);
     (z + f32x16::ONE) * pow2
 }
 
-/// Reinterpret 64 bytes of lanes (f32x16 ↔ i32x16: same size and alignment, every bit
-/// pattern valid).
+/// The lanes' bit patterns as integers.
 #[inline(always)]
-fn bytemuck_cast<A: Copy, B: Copy>(a: A) -> B {
-    const { assert!(std::mem::size_of::<A>() == std::mem::size_of::<B>()) };
-    // SAFETY: sizes are equal (checked at compile time); used only between wide's f32x16 and
-    // i32x16, plain 64-byte vectors for which every bit pattern is a valid value.
-    unsafe { std::mem::transmute_copy(&a) }
+fn f32_bits(x: f32x16) -> wide::i32x16 {
+    // SAFETY: f32x16 and i32x16 are both 64-byte vectors of 16 plain 32-bit lanes (same size
+    // and alignment); every bit pattern is a valid value of either.
+    unsafe { std::mem::transmute::<f32x16, wide::i32x16>(x) }
+}
+
+/// Integer lanes reinterpreted as f32 (the inverse of [`f32_bits`]).
+#[inline(always)]
+fn f32_from_bits(x: wide::i32x16) -> f32x16 {
+    // SAFETY: as in `f32_bits`.
+    unsafe { std::mem::transmute::<wide::i32x16, f32x16>(x) }
 }
 
 /// (G = e^{−ρ/2}, α = min(0.99, o·G), lanes where the clamp bit).

@@ -41,7 +41,7 @@ use crate::camera::Camera;
 use crate::surfels::Surfels;
 use rayon::prelude::*;
 use std::cell::{Ref, RefCell};
-use wide::f32x16;
+use wide::{f32x8, f32x16};
 
 /// Lanes of a packed candidate record (`Projected::packed`).
 pub(crate) const PK_TU: usize = 0;
@@ -132,6 +132,9 @@ pub(crate) struct TileData {
     /// `blend_rows`). The tile keeps its own copy: blending straight from the per-surfel rows
     /// (a gather per blend) cost training-like scenes 1 ms a frame (BENCHMARKS.md, session 25).
     pub blend_rows: Vec<f32x16>,
+    /// The rows' first 8 lanes, instead of `blend_rows` when they hold everything blended
+    /// (`NARROW` in [`PixelSums::blend`]).
+    pub blend_rows8: Vec<f32x8>,
 }
 
 /// Lanes of a blend row: colour 0..3, normal 3..6, 1 at 6, features from 7.
@@ -139,6 +142,8 @@ const BLEND_ONE: usize = 6;
 const BLEND_FEAT: usize = 7;
 /// Feature channels that fit in a blend row; more are blended channel by channel.
 const ROW_FEATURES: usize = 16 - BLEND_FEAT;
+/// Feature channels that fit in the first 8 lanes (a narrow row).
+const NARROW_FEATURES: usize = 8 - BLEND_FEAT;
 
 impl TileData {
     /// Load the list `ids` of the tile whose first pixel is `origin`.
@@ -184,6 +189,12 @@ impl TileData {
     pub fn load_blend_rows(&mut self, rows: &[f32x16]) {
         self.blend_rows.clear();
         self.blend_rows.extend(self.ids.iter().map(|&i| rows[i as usize]));
+    }
+
+    /// Gather the candidates' narrow blend rows (after `load`).
+    pub fn load_blend_rows8(&mut self, rows: &[f32x8]) {
+        self.blend_rows8.clear();
+        self.blend_rows8.extend(self.ids.iter().map(|&i| rows[i as usize]));
     }
 
     /// Gather the candidates' colour and normal (after `load`; for the backward).
@@ -1038,6 +1049,8 @@ struct PixelSums {
     /// Σ w · blend row: colour, normal, Σ w (rather than 1 − T: no cancellation when α is
     /// tiny) and the features that fit.
     row: f32x16,
+    /// The row's first 8 lanes when blending narrow rows (`row` is then unused).
+    row8: f32x8,
     /// Features beyond the row, channel by channel.
     features: [f32; MAX_FEATURES],
     /// Σ w z.
@@ -1053,9 +1066,14 @@ struct PixelSums {
 }
 
 impl PixelSums {
+    /// Add one hit. `LEAN`: only the blend row (colour, normal, Σ w, the row's features), for
+    /// renders that ask for no depth, median, distortion or surface depth and whose features
+    /// fit the row ([`lean_outputs`]): a relit or evaluation frame then skips their per-hit
+    /// work and the settings tests, which are reloaded each hit. `NARROW` (with `LEAN`, at most
+    /// one feature channel): the row's first 8 lanes, one AVX2 multiply-add instead of two.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn blend(
+    fn blend<const LEAN: bool, const NARROW: bool>(
         &mut self,
         td: &TileData,
         s: &RasterSettings,
@@ -1066,7 +1084,14 @@ impl PixelSums {
         t: f32,
     ) {
         let wgt = alpha * t;
+        if NARROW {
+            self.row8 = td.blend_rows8[li].mul_add(f32x8::splat(wgt), self.row8);
+            return;
+        }
         self.row = td.blend_rows[li].mul_add(f32x16::splat(wgt), self.row);
+        if LEAN {
+            return;
+        }
         self.depth += wgt * z;
         if s.outputs.distortion {
             let m = norm_depth(z, s.near, s.far);
@@ -1108,8 +1133,14 @@ impl PixelSums {
 
     /// The pixel's record (T_final `tf` for the background).
     #[inline(always)]
-    fn write(&self, r: &mut [f32], tf: f32, s: &RasterSettings, nch: usize) {
-        let row = self.row.to_array();
+    fn write(&self, r: &mut [f32], tf: f32, s: &RasterSettings, nch: usize, narrow: bool) {
+        let row = if narrow {
+            let mut row = [0.0; 16];
+            row[..8].copy_from_slice(&self.row8.to_array());
+            row
+        } else {
+            self.row.to_array()
+        };
         let a = row[BLEND_ONE];
         for ch in 0..3 {
             r[REC_COLOUR + ch] = if s.outputs.colour { row[ch] } else { 0.0 } + tf * s.background[ch];
@@ -1216,6 +1247,10 @@ fn render_impl(
     let proj = project::project(surfels, camera, settings);
     let bins = tiles::bin(&proj, w, h, settings.alpha_min, settings.filter_inv_square);
     let rows = blend_rows(&proj, features);
+    // Narrow rows when they hold all a non-recording render blends.
+    let rows8: Option<Vec<f32x8>> = (record.is_none() && lean_outputs(settings, nch) && nch <= NARROW_FEATURES)
+        .then(|| rows.par_iter().map(|r| f32x8::new(r.to_array()[..8].try_into().unwrap())).collect());
+    let row_sets = (rows.as_slice(), rows8.as_deref());
     let stride = REC_FEAT + nch;
     let mut buf = vec![0.0f32; (w * h) as usize * stride];
     let add = |a: (u64, u64), b: (u64, u64)| (a.0 + b.0, a.1 + b.1);
@@ -1234,7 +1269,7 @@ fn render_impl(
                         |(td, pending), ((ty, chunk), row)| {
                             let rec = Some((row, pending, cap));
                             render_tile_row(
-                                &proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, &rows, rec,
+                                &proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, row_sets, rec,
                             )
                         },
                     )
@@ -1242,7 +1277,9 @@ fn render_impl(
             }
             None => chunks
                 .map_init(TileData::default, |td, (ty, chunk)| {
-                    render_tile_row(&proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, &rows, None)
+                    render_tile_row(
+                        &proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, row_sets, None,
+                    )
                 })
                 .reduce(|| (0, 0), add),
         }
@@ -1352,6 +1389,62 @@ fn split_outputs(buf: &[f32], w: u32, h: u32, stride: usize, nch: usize, s: &Ras
     out
 }
 
+/// Whether a render needs only the blend row per hit (see [`PixelSums::blend`]).
+fn lean_outputs(s: &RasterSettings, nch: usize) -> bool {
+    let o = s.outputs;
+    !o.depth && !o.median_depth && !o.distortion && !o.surface_depth && nch <= ROW_FEATURES
+}
+
+/// A pixel pair's sums (the second only if `two`) through the compositor, one pixel at a time
+/// where [`SINGLE`]. Inlined so the sums stay in registers across blends.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn composite_sums<const LEAN: bool, const NARROW: bool>(
+    td: &TileData,
+    pf: [(f32, f32); 2],
+    two: bool,
+    s: &RasterSettings,
+    k: usize,
+    features: Option<Features>,
+    sa: &mut PixelSums,
+    sb: &mut PixelSums,
+) -> [(f32, Evaluated); 2] {
+    if !SINGLE {
+        return composite_two_pixels(
+            td,
+            pf,
+            two,
+            s,
+            k,
+            #[inline(always)]
+            |li, z, alpha, t| sa.blend::<LEAN, NARROW>(td, s, features, li, z, alpha, t),
+            #[inline(always)]
+            |li, z, alpha, t| sb.blend::<LEAN, NARROW>(td, s, features, li, z, alpha, t),
+        );
+    }
+    let ra = composite_one_pixel(
+        td,
+        pf[0],
+        s,
+        k,
+        #[inline(always)]
+        |li, z, alpha, t| sa.blend::<LEAN, NARROW>(td, s, features, li, z, alpha, t),
+    );
+    let rb = if two {
+        composite_one_pixel(
+            td,
+            pf[1],
+            s,
+            k,
+            #[inline(always)]
+            |li, z, alpha, t| sb.blend::<LEAN, NARROW>(td, s, features, li, z, alpha, t),
+        )
+    } else {
+        (1.0, Evaluated::default())
+    };
+    [ra, rb]
+}
+
 #[allow(clippy::too_many_arguments)]
 // Not inlined into rayon's closure: profiles then name the forward's tile loop.
 #[inline(never)]
@@ -1365,7 +1458,8 @@ fn render_tile_row(
     chunk: &mut [f32],
     stride: usize,
     td: &mut TileData,
-    rows: &[f32x16],
+    // Per-surfel blend rows, and their narrow form when the render blends those instead.
+    rows: (&[f32x16], Option<&[f32x8]>),
     // The row's hit record, a scratch list for the second pixel of a pair (whose blends
     // interleave with the first's) and the row's share of the record budget.
     mut record: Option<(&mut RowHits, &mut Vec<RecordedHit>, usize)>,
@@ -1374,6 +1468,10 @@ fn render_tile_row(
     let h = camera.height;
     let k = s.k();
     let nch = features.map_or(0, |f| f.channels);
+    let lean = lean_outputs(s, nch);
+    // Not while recording: that path blends through the full row.
+    let narrow = rows.1.is_some() && record.is_none();
+    debug_assert!(!narrow || (lean && nch <= NARROW_FEATURES));
     // (performed, tile-list) evaluations.
     let mut evals = (0u64, 0u64);
     let y0 = ty * TILE;
@@ -1390,7 +1488,10 @@ fn render_tile_row(
         let t = (ty * bins.tiles_x + tx) as usize;
         let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
         td.load(proj, ids, (tx * TILE, ty * TILE));
-        td.load_blend_rows(rows);
+        match rows {
+            (_, Some(rows8)) if narrow => td.load_blend_rows8(rows8),
+            (rows16, _) => td.load_blend_rows(rows16),
+        }
         let x0 = tx * TILE;
         let x1 = (x0 + TILE).min(w);
         for y in y0..y1 {
@@ -1403,41 +1504,9 @@ fn render_tile_row(
                 // Over its share of the budget a row stops recording (at most a pair's hits over).
                 let recording = matches!(record.as_ref(), Some((row, _, cap)) if row.hits.len() <= *cap);
                 let [(ta, eva), (tb, evb)] = match record.as_mut().filter(|_| recording) {
-                    // Inlined so the sums stay in registers across blends.
-                    None if SINGLE => {
-                        let ra = composite_one_pixel(
-                            td,
-                            pf[0],
-                            s,
-                            k,
-                            #[inline(always)]
-                            |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
-                        );
-                        let rb = if two {
-                            composite_one_pixel(
-                                td,
-                                pf[1],
-                                s,
-                                k,
-                                #[inline(always)]
-                                |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
-                            )
-                        } else {
-                            (1.0, Evaluated::default())
-                        };
-                        [ra, rb]
-                    }
-                    None => composite_two_pixels(
-                        td,
-                        pf,
-                        two,
-                        s,
-                        k,
-                        #[inline(always)]
-                        |li, z, alpha, t| sa.blend(td, s, features, li, z, alpha, t),
-                        #[inline(always)]
-                        |li, z, alpha, t| sb.blend(td, s, features, li, z, alpha, t),
-                    ),
+                    None if narrow => composite_sums::<true, true>(td, pf, two, s, k, features, &mut sa, &mut sb),
+                    None if lean => composite_sums::<true, false>(td, pf, two, s, k, features, &mut sa, &mut sb),
+                    None => composite_sums::<false, false>(td, pf, two, s, k, features, &mut sa, &mut sb),
                     Some((row, pending, _)) => {
                         let start_a = row.hits.len() as u32;
                         pending.clear();
@@ -1449,12 +1518,12 @@ fn render_tile_row(
                             k,
                             #[inline(always)]
                             |li, z, alpha, t| {
-                                sa.blend(td, s, features, li, z, alpha, t);
+                                sa.blend::<false, false>(td, s, features, li, z, alpha, t);
                                 row.hits.push(RecordedHit { li: li as u32, z, alpha, t });
                             },
                             #[inline(always)]
                             |li, z, alpha, t| {
-                                sb.blend(td, s, features, li, z, alpha, t);
+                                sb.blend::<false, false>(td, s, features, li, z, alpha, t);
                                 pending.push(RecordedHit { li: li as u32, z, alpha, t });
                             },
                         );
@@ -1470,11 +1539,11 @@ fn render_tile_row(
                     }
                 };
                 let at = |x: u32| local(x) * stride;
-                sa.write(&mut chunk[at(x)..][..stride], ta, s, nch);
+                sa.write(&mut chunk[at(x)..][..stride], ta, s, nch, narrow);
                 evals.0 += eva.performed as u64;
                 evals.1 += eva.tile_list as u64;
                 if two {
-                    sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch);
+                    sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch, narrow);
                     evals.0 += evb.performed as u64;
                     evals.1 += evb.tile_list as u64;
                 }

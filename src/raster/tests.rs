@@ -876,3 +876,56 @@ fn blend_weights_reblend_features_as_the_reference() {
         }
     }
 }
+
+/// Renders that ask only for colour / alpha / features take the lean paths of the forward
+/// (only the blend row per hit; 8 lanes when at most one feature channel): their values must
+/// be bit for bit those of the full render, and match the reference.
+#[test]
+fn lean_and_narrow_renders_match_the_full_render_and_the_reference() {
+    let cam = camera(40, 30);
+    let s = random_scene(30, 21, (0.05, 0.35), (0.1, 0.95));
+    for k in [1usize, 3, 8, 32] {
+        for (nch, outputs) in [
+            (0usize, Outputs::colour_only()),
+            (1, Outputs::colour_only()),
+            (1, Outputs::none()),
+            (5, Outputs::colour_only()),
+            (12, Outputs::colour_only()),
+            (0, Outputs { normal: true, ..Outputs::colour_only() }),
+        ] {
+            let f = random_features(s.len(), nch.max(1), 7 + nch as u64);
+            let feats = (nch > 0).then(|| Features { data: &f, channels: nch });
+            let full = RasterSettings { window: k, two_sided: true, ..Default::default() };
+            let lean = RasterSettings { outputs, ..full.clone() };
+            let (a, _) = render(&s, &cam, &full, feats);
+            let (b, _) = render(&s, &cam, &lean, feats);
+            let what = format!("K = {k}, {nch} features, {outputs:?}");
+            assert_eq!(a.alpha, b.alpha, "{what}: alpha");
+            assert_eq!(a.features, b.features, "{what}: features");
+            if outputs.colour {
+                assert_eq!(a.colour, b.colour, "{what}: colour");
+            } else {
+                assert!(b.colour.is_empty(), "{what}");
+            }
+            if outputs.normal {
+                assert_eq!(a.normal, b.normal, "{what}: normal");
+            }
+            assert!(b.depth.is_empty() && b.distortion.is_empty(), "{what}");
+            let r =
+                render_ref(&RefScene::from_surfels(&s, feats.map(|f| (f.data, nch))), &cam, &lean, Order::Window(k));
+            let mut m = 0.0f64;
+            for i in 0..b.alpha.len() {
+                m = m.max((b.alpha[i] as f64 - r.alpha[i]).abs());
+                if !b.colour.is_empty() {
+                    for c in 0..3 {
+                        m = m.max((b.colour[i][c] as f64 - r.colour[i][c]).abs() / (1.0 + r.colour[i][c].abs()));
+                    }
+                }
+            }
+            for i in 0..b.features.len() {
+                m = m.max((b.features[i] as f64 - r.features[i]).abs() / (1.0 + r.features[i].abs()));
+            }
+            assert!(m < 2e-4, "{what}: max diff {m} against the reference");
+        }
+    }
+}

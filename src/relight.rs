@@ -169,15 +169,32 @@ pub fn finetune(
     cameras: &[Camera],
     cfg: &FinetuneSettings,
     show_progress: bool,
+    start_cache: Option<&IncidentCache>,
 ) -> crate::Result<FinetuneReport> {
     let started = Instant::now();
     let n = surfels.len();
     let split_env = env;
     let env_s = env.box_downsample(cfg.sample_factor);
     let env = &env_s;
-    // Start: DC = the traced prediction along the normal (encoded like the SH images).
-    let cache =
-        traced_cache(surfels, mats, split_env, cfg.samples, cfg.start, cfg.seed, cfg.sample_factor, cfg.bounces)?;
+    // Start: DC = the traced prediction along the normal (encoded like the SH images), from
+    // `start_cache` when the caller traced it already (`traced_cache` with these settings).
+    let traced;
+    let cache = match start_cache {
+        Some(c) => c,
+        None => {
+            traced = traced_cache(
+                surfels,
+                mats,
+                split_env,
+                cfg.samples,
+                cfg.start,
+                cfg.seed,
+                cfg.sample_factor,
+                cfg.bounces,
+            )?;
+            &traced
+        }
+    };
     let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
     let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
     shade_surfels(&inp, env, &mut direct, &mut indirect)?;
@@ -310,7 +327,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 bounces: args.bounces,
                 seed: args.seed,
             };
-            let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;
+            let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true, None)?;
             eprintln!(
                 "relight finetune: {} iterations in {:.1} s, consistency {:.4} → {:.4}",
                 report.iterations, report.seconds, report.first_loss, report.last_loss

@@ -429,6 +429,8 @@ fn eval_relight(
     for name in dataset.relit_found() {
         let Some(path) = dataset.envmap_path(&name) else { continue };
         let env = prepare_env(path, 0.0, cfg.env_height)?;
+        // The traced mode's incident light is also the finetune's start (same settings).
+        let mut light_cache = None;
         for mode in ["traced", "finetune"] {
             let t0 = Instant::now();
             let mut surfels = scene.surfels.clone();
@@ -441,6 +443,7 @@ fn eval_relight(
                 let bounces = args.relight_bounces;
                 let cache =
                     traced_cache(&surfels, &mats, &env, args.relight_samples, start, cfg.seed, factor, bounces)?;
+                light_cache = Some(cache.clone());
                 traced_scene = Some(crate::pbr_scene::PbrScene {
                     surfels: surfels.clone(),
                     env: env.clone(),
@@ -466,7 +469,7 @@ fn eval_relight(
                     bounces: args.relight_bounces,
                     seed: cfg.seed,
                 };
-                finetune(&mut surfels, &mats, &env, &cameras, &settings, true)?;
+                finetune(&mut surfels, &mats, &env, &cameras, &settings, true, light_cache.as_ref())?;
                 traced_scene = None;
             }
             // The prefiltered map of a split-sum lobe, once per light (not per frame).

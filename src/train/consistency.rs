@@ -26,7 +26,7 @@ use crate::shade::incident::{RayStart, decode, decode_derivative, rotation_for, 
 use crate::shade::pbr::{Detach, PbrGrads, PbrInputs, shade_surfels, shade_surfels_backward};
 use crate::shade::sampling::uniform_hemisphere;
 use crate::surfels::{SurfelGrads, Surfels};
-use crate::trace::{HitRecord, Ray, RayGrad, RayOutput, Tracer, trace_backward_recorded, trace_recorded};
+use crate::trace::{HitRecord, Ray, RayGrad, RayOutput, Tracer, trace, trace_backward_recorded, trace_recorded};
 use rand::RngExt;
 
 /// sRGB encoding extended above 1 (no clamp; 0 below 0).
@@ -172,7 +172,12 @@ pub fn radiometric_consistency(
         );
     }
     sc.out.resize(b * r, RayOutput::default());
-    trace_recorded(tracer, surfels, &sc.rays, &mut sc.out, &mut sc.record);
+    if cfg.detach_rhs {
+        // No gradient through the rays (relighting's finetune): nothing to record.
+        trace(tracer, surfels, &sc.rays, None, &mut sc.out, None);
+    } else {
+        trace_recorded(tracer, surfels, &sc.rays, &mut sc.out, &mut sc.record);
+    }
     sc.linear = tracer.settings.linear_radiance;
 
     // Two entries per surfel: 2k = ω_cam, 2k + 1 = ω_rand; both share the traced samples.

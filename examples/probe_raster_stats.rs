@@ -58,6 +58,7 @@ fn main() -> anyhow::Result<()> {
         v[v.len() / 2]
     };
     let projected = raster::project::project(&surfels, &cam, &settings);
+    quarter_culling(&projected, &state.tiles, size, settings.filter_inv_square);
     let project_ms = median_ms(&|| {
         raster::project::project(&surfels, &cam, &settings);
     });
@@ -69,4 +70,54 @@ fn main() -> anyhow::Result<()> {
     });
     println!("median of 15: project {project_ms:.2} ms, bin {bin_ms:.2} ms, whole frame {frame_ms:.2} ms");
     Ok(())
+}
+
+/// How many (tile quarter, candidate) pairs the compositor's box test keeps, against the pairs
+/// whose α ≥ α_min region reaches a pixel centre of the quarter (ρ ≤ the cut-off, brute force
+/// per pixel): the room a tighter per-quarter test would have.
+fn quarter_culling(p: &raster::project::Projected, bins: &raster::tiles::TileBins, size: u32, filter_inv_square: f32) {
+    const TILE: u32 = 16;
+    const QUARTER: u32 = 8;
+    let (mut boxed, mut reached, mut pixels_reached) = (0u64, 0u64, 0u64);
+    for ty in 0..bins.tiles_y {
+        for tx in 0..bins.tiles_x {
+            let t = (ty * bins.tiles_x + tx) as usize;
+            for &i in &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize] {
+                let i = i as usize;
+                let b = p.pixels[i];
+                for (qx, qy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let (x0, y0) = (tx * TILE + qx * QUARTER, ty * TILE + qy * QUARTER);
+                    let (x1, y1) = ((x0 + QUARTER - 1).min(size - 1), (y0 + QUARTER - 1).min(size - 1));
+                    if x0 >= size || y0 >= size || b[0] > x1 || b[2] < x0 || b[1] > y1 || b[3] < y0 {
+                        continue;
+                    }
+                    boxed += 1;
+                    let mut hits = 0u64;
+                    for y in y0..=y1 {
+                        for x in x0..=x1 {
+                            hits += (rho(p, i, x as f32 + 0.5, y as f32 + 0.5, filter_inv_square) <= p.rho_max[i]) as u64;
+                        }
+                    }
+                    reached += (hits > 0) as u64;
+                    pixels_reached += hits;
+                }
+            }
+        }
+    }
+    println!(
+        "quarter lists: {boxed} (quarter, candidate) pairs by box, {reached} reach a pixel of their quarter ({:.1} %), {:.1} of a quarter's 64 pixels per reaching pair",
+        100.0 * reached as f64 / boxed.max(1) as f64,
+        pixels_reached as f64 / reached.max(1) as f64
+    );
+}
+
+/// ρ = min(ρ₃, ρ₂) at pixel centre (x, y), as the compositor computes it (f32).
+fn rho(p: &raster::project::Projected, i: usize, x: f32, y: f32, filter_inv_square: f32) -> f32 {
+    let (tu, tv, tw) = (p.tu[i], p.tv[i], p.tw[i]);
+    let k = [x * tw[0] - tu[0], x * tw[1] - tu[1], x * tw[2] - tu[2]];
+    let l = [y * tw[0] - tv[0], y * tw[1] - tv[1], y * tw[2] - tv[2]];
+    let h = [k[1] * l[2] - k[2] * l[1], k[2] * l[0] - k[0] * l[2], k[0] * l[1] - k[1] * l[0]];
+    let (u, v) = (h[0] / h[2], h[1] / h[2]);
+    let (dx, dy) = (p.mean2d[i][0] - x, p.mean2d[i][1] - y);
+    (u * u + v * v).min(filter_inv_square * (dx * dx + dy * dy))
 }

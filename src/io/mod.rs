@@ -4,3 +4,6 @@ pub mod atomic;
 pub mod dataset;
 pub mod image;
 pub mod ply;
+pub mod rgbe;
+#[cfg(test)]
+mod vs_image_crate;

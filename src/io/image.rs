@@ -410,9 +410,9 @@ fn encode_png(img: &Image, path: &Path) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
-/// OpenEXR, ZIP-compressed scan lines in increasing order. The `image` crate's writer uses the
-/// exr default (tiles in unspecified order, compressed in parallel), so the same picture could
-/// come out as different bytes from run to run; a run's outputs must be reproducible.
+/// OpenEXR, ZIP-compressed scan lines in increasing order. The exr default (tiles in
+/// unspecified order, compressed in parallel) could give the same picture as different bytes
+/// from run to run; a run's outputs must be reproducible.
 fn encode_exr(img: &Image, path: &Path) -> Result<Vec<u8>> {
     use exr::prelude::{Encoding, Image as ExrImage, SpecificChannels, Vec2, WritableImage};
     let (w, h) = (img.width as usize, img.height as usize);
@@ -555,7 +555,7 @@ mod tests {
         }
     }
 
-    /// Formats the image crate knows but we do not write are refused by name, nothing written.
+    /// Other formats (JPEG here) are refused by name, nothing written.
     #[test]
     fn unsupported_output_format_is_refused() {
         let dir = std::env::temp_dir().join(format!("radiogs-fmt-{}", std::process::id()));

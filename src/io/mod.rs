@@ -5,5 +5,3 @@ pub mod dataset;
 pub mod image;
 pub mod ply;
 pub mod rgbe;
-#[cfg(test)]
-mod vs_image_crate;

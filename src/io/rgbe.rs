@@ -55,7 +55,14 @@ pub fn rgb_to_rgbe(rgb: [f32; 3]) -> [u8; 4] {
 pub fn decode(path: &Path, bytes: &[u8]) -> Result<Image> {
     let mut r = Reader { path, bytes, pos: 0 };
     let (width, height) = read_header(&mut r)?;
-    let mut data = Vec::new();
+    if width == 0 || height == 0 {
+        return Ok(Image { width, height, channels: 3, data: Vec::new() });
+    }
+    // The whole image at once when the rest of the file could hold it (new-style runs take at
+    // least 8 bytes per 127 pixels; old-style runs, which can take less, grow the buffer), so a
+    // header alone cannot make a huge buffer.
+    let pixels = (width as usize * height as usize).min((bytes.len() - r.pos).saturating_mul(16));
+    let mut data = Vec::with_capacity(pixels * 3);
     let mut line = Vec::new();
     for y in 0..height {
         read_scanline(&mut r, y, width as usize, &mut line)?;
@@ -504,5 +511,8 @@ mod tests {
     fn empty_image_reads_no_pixels() {
         let img = decode(Path::new("a.hdr"), &header(0, 5)).unwrap();
         assert_eq!((img.width, img.height, img.data.len()), (0, 5, 0));
+        // No time spent on billions of empty scanlines either.
+        let img = decode(Path::new("a.hdr"), &header(0, u32::MAX)).unwrap();
+        assert_eq!((img.width, img.height, img.data.len()), (0, u32::MAX, 0));
     }
 }

@@ -10,7 +10,7 @@
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
-use crate::io::image::{Image, check_image, read_rgba};
+use crate::io::image::{Image, check_image, image_dimensions, read_rgba};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -410,10 +410,7 @@ pub fn read_transforms_sized(root: &Path, path: &Path, size: Option<(u32, u32)>)
         let (w, h) = match size {
             Some(s) => s,
             None => {
-                let dims = image::image_dimensions(&image_path).map_err(|e| match e {
-                    image::ImageError::IoError(io) => Error::io(&image_path, io),
-                    other => Error::format(&image_path, "image header", other.to_string()),
-                })?;
+                let dims = image_dimensions(&image_path)?;
                 size = Some(dims);
                 dims
             }

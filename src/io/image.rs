@@ -1,8 +1,11 @@
-//! Float images and their files: PNG (8/16-bit, sRGB-encoded as stored), OpenEXR and Radiance
-//! .hdr (linear). Every reader names the file in its error; every writer is atomic.
+//! Float images and their files: PNG (8/16-bit, sRGB-encoded as stored; the `png` crate),
+//! OpenEXR (the `exr` crate) and Radiance .hdr (linear; [`crate::io::rgbe`]). Every reader names
+//! the file in its error; every writer is atomic.
 
 use crate::error::{Error, Result};
 use crate::io::atomic::write_atomic;
+use crate::io::dataset::MAX_IMAGE_SIDE;
+use crate::io::rgbe;
 use std::path::Path;
 
 /// An interleaved float image, row-major from the top row.
@@ -118,22 +121,167 @@ pub fn srgb_to_linear(x: f32) -> f32 {
     if x <= 0.040_45 { x / 12.92 } else { ((x + 0.055) / 1.055).powf(2.4) }
 }
 
-fn decode_error(path: &Path, e: image::ImageError) -> Error {
-    match e {
-        // Decoders read from memory: running out of bytes means the file ends early.
-        image::ImageError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
-            Error::format(path, "image data", "the file ends early (truncated or empty)")
-        }
-        image::ImageError::IoError(io) => Error::io(path, io),
-        other => Error::format(path, "image data", other.to_string()),
+/// The most pixels an image file may declare (the largest side a dataset may have, squared):
+/// a corrupt or hostile header cannot make a reader allocate more.
+pub const MAX_PIXELS: u64 = MAX_IMAGE_SIDE as u64 * MAX_IMAGE_SIDE as u64;
+
+/// What every reader says when the bytes run out.
+pub(crate) const TRUNCATED: &str = "the file ends early (truncated or empty)";
+
+/// Memory the PNG decoder may use for its own buffers (the limit the `image` crate gave it).
+const PNG_DECODER_LIMIT: usize = 512 << 20;
+
+/// DEFLATE expands at most 1032-fold (a 258-byte match coded in two bits), so a PNG header
+/// promising more raw bytes than that times the file's size is corrupt.
+const MAX_DEFLATE_RATIO: u64 = 1032;
+
+/// The image formats read and written, by extension (case-insensitive).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Format {
+    Png,
+    Exr,
+    Hdr,
+}
+
+fn format_of(path: &Path) -> Option<Format> {
+    let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+    match ext.as_str() {
+        "png" | "apng" => Some(Format::Png),
+        "exr" => Some(Format::Exr),
+        "hdr" => Some(Format::Hdr),
+        _ => None,
     }
 }
 
-fn open(path: &Path) -> Result<image::DynamicImage> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let format = image::ImageFormat::from_path(path)
-        .map_err(|_| Error::format(path, "extension", "not a known image type (png, exr, hdr)"))?;
-    image::load_from_memory_with_format(&bytes, format).map_err(|e| decode_error(path, e))
+fn unknown_type(path: &Path) -> Error {
+    Error::format(path, "extension", "not a known image type (png, exr, hdr)")
+}
+
+fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::io(path, e))
+}
+
+fn png_error(path: &Path, field: &str, e: png::DecodingError) -> Error {
+    match e {
+        // The decoder reads from memory: running out of bytes means the file ends early.
+        png::DecodingError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            Error::format(path, field, TRUNCATED)
+        }
+        png::DecodingError::IoError(io) => Error::io(path, io),
+        png::DecodingError::LimitsExceeded => {
+            Error::format(path, field, "needs more memory than the PNG decoder may use")
+        }
+        other => Error::format(path, field, other.to_string()),
+    }
+}
+
+/// Refuse a PNG header whose size is beyond [`MAX_PIXELS`] or beyond what the file's bytes
+/// could hold, before any buffer of that size is allocated.
+fn check_png_size(path: &Path, info: &png::Info, file_len: usize) -> Result<()> {
+    let (w, h) = (info.width as u64, info.height as u64);
+    if w * h > MAX_PIXELS {
+        return Err(Error::format(
+            path,
+            "PNG header",
+            format!("{w}×{h} is more than the {MAX_PIXELS} pixels an image may have"),
+        ));
+    }
+    let raw_bytes = h * (1 + (w * info.bits_per_pixel() as u64).div_ceil(8));
+    if raw_bytes > MAX_DEFLATE_RATIO * file_len as u64 {
+        return Err(Error::format(path, "PNG header", format!("{w}×{h} pixels cannot fit in {file_len} bytes")));
+    }
+    Ok(())
+}
+
+/// A PNG decoder past the header, set to expand palettes, grey below 8 bits and tRNS to plain
+/// 8- or 16-bit samples. No gamma, sRGB or ICC conversion: values are read as stored.
+fn png_reader<'a>(path: &Path, bytes: &'a [u8]) -> Result<png::Reader<std::io::Cursor<&'a [u8]>>> {
+    let limits = png::Limits { bytes: PNG_DECODER_LIMIT };
+    let mut decoder = png::Decoder::new_with_limits(std::io::Cursor::new(bytes), limits);
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let info = decoder.read_header_info().map_err(|e| png_error(path, "PNG header", e))?;
+    check_png_size(path, info, bytes.len())?;
+    decoder.read_info().map_err(|e| png_error(path, "image data", e))
+}
+
+/// A decoded PNG: 1–4 samples a pixel (grey, grey+alpha, RGB, RGBA), 8- or 16-bit
+/// (big-endian), rows packed.
+struct DecodedPng {
+    width: u32,
+    height: u32,
+    samples: usize,
+    sixteen_bit: bool,
+    data: Vec<u8>,
+}
+
+/// Decode the first (or only) frame of a PNG.
+fn decode_png(path: &Path, bytes: &[u8]) -> Result<DecodedPng> {
+    let mut reader = png_reader(path, bytes)?;
+    let size = reader.output_buffer_size();
+    let size = size.ok_or_else(|| png_error(path, "image data", png::DecodingError::LimitsExceeded))?;
+    let mut data = vec![0; size];
+    let frame = reader.next_frame(&mut data).map_err(|e| png_error(path, "image data", e))?;
+    let sixteen_bit = match frame.bit_depth {
+        png::BitDepth::Eight => false,
+        png::BitDepth::Sixteen => true,
+        other => return Err(Error::format(path, "image data", format!("{other:?}-bit samples after expansion"))),
+    };
+    let (width, height) = (frame.width, frame.height);
+    Ok(DecodedPng { width, height, samples: frame.color_type.samples(), sixteen_bit, data })
+}
+
+/// RGBA floats in [0, 1] (v / 255 or v / 65535, as stored), grey repeated, missing alpha 1.
+/// Rounded as the `image` crate's `to_rgba32f` rounded, so inputs read as before to the bit:
+/// it divided RGB(A) samples but multiplied grey ones by the reciprocal (a different path), and
+/// the two differ in the last bit for some values.
+fn png_to_rgba(png: &DecodedPng) -> Image {
+    let grey = png.samples <= 2;
+    let (max, reciprocal) = if png.sixteen_bit { (65535.0, 1.0 / 65535.0) } else { (255.0, 1.0 / 255.0) };
+    let sample = |i: usize| {
+        let v = if png.sixteen_bit {
+            u16::from_be_bytes([png.data[2 * i], png.data[2 * i + 1]]) as f32
+        } else {
+            png.data[i] as f32
+        };
+        if grey { v * reciprocal } else { v / max }
+    };
+    let mut out = Image::new(png.width, png.height, 4);
+    for (p, dst) in out.data.chunks_exact_mut(4).enumerate() {
+        let s = |k: usize| sample(p * png.samples + k);
+        let rgba = match png.samples {
+            1 => [s(0), s(0), s(0), 1.0],
+            2 => [s(0), s(0), s(0), s(1)],
+            3 => [s(0), s(1), s(2), 1.0],
+            _ => [s(0), s(1), s(2), s(3)],
+        };
+        dst.copy_from_slice(&rgba);
+    }
+    out
+}
+
+/// The width and height an image file declares, from its header alone where the format
+/// allows (PNG, EXR; a .hdr is read whole, its pixels left undecoded).
+pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
+    match format_of(path) {
+        Some(Format::Png) => {
+            let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+            let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+            let info = decoder.read_header_info().map_err(|e| png_error(path, "image header", e))?;
+            Ok(info.size())
+        }
+        Some(Format::Exr) => {
+            let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
+                exr::error::Error::Io(io) => Error::io(path, io),
+                other => Error::format(path, "OpenEXR header", other.to_string()),
+            })?;
+            let header = meta.headers.first().ok_or_else(|| Error::format(path, "OpenEXR header", "no layer"))?;
+            let size = header.layer_size;
+            let side = |v: usize| u32::try_from(v).map_err(|_| Error::format(path, "OpenEXR header", "too large"));
+            Ok((side(size.0)?, side(size.1)?))
+        }
+        Some(Format::Hdr) => rgbe::dimensions(path, &read_bytes(path)?),
+        None => Err(unknown_type(path)),
+    }
 }
 
 /// Read named channels of an OpenEXR file's first layer (e.g. `["R", "G", "B"]`, or
@@ -194,33 +342,35 @@ fn read_exr_rgba(path: &Path) -> Result<Image> {
 /// Read any supported image as RGBA float. PNG values are scaled to [0, 1] and left
 /// encoded as stored (sRGB for colour); EXR/HDR are linear. Missing alpha becomes 1.
 pub fn read_rgba(path: &Path) -> Result<Image> {
-    let is_exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
-    let (width, height, data) = if is_exr {
-        let img = read_exr_rgba(path)?;
-        (img.width, img.height, img.data)
-    } else {
-        let rgba = open(path)?.to_rgba32f();
-        let (width, height) = rgba.dimensions();
-        (width, height, rgba.into_raw())
+    let img = match format_of(path) {
+        Some(Format::Exr) => read_exr_rgba(path)?,
+        format => {
+            let bytes = read_bytes(path)?;
+            match format {
+                Some(Format::Png) => png_to_rgba(&decode_png(path, &bytes)?),
+                Some(Format::Hdr) => expand_to(&rgbe::decode(path, &bytes)?, 4),
+                _ => return Err(unknown_type(path)),
+            }
+        }
     };
-    if let Some(bad) = data.iter().position(|v| !v.is_finite()) {
+    if let Some(bad) = img.data.iter().position(|v| !v.is_finite()) {
         let px = bad / 4;
         return Err(Error::format(
             path,
-            format!("pixel ({}, {})", px % width as usize, px / width as usize),
+            format!("pixel ({}, {})", px % img.width as usize, px / img.width as usize),
             "value is NaN or infinite",
         ));
     }
-    Ok(Image { width, height, channels: 4, data })
+    Ok(img)
 }
 
 /// Decode an image in full and return its size, keeping no float copy: a truncated or corrupt
 /// file fails here as it would in [`read_rgba`] (with the same message), at the cost of the
 /// decode alone for PNG (float formats are read as [`read_rgba`] reads them, values checked).
 pub fn check_image(path: &Path) -> Result<(u32, u32)> {
-    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")) {
-        let img = open(path)?;
-        return Ok((img.width(), img.height()));
+    if format_of(path) == Some(Format::Png) {
+        let png = decode_png(path, &read_bytes(path)?)?;
+        return Ok((png.width, png.height));
     }
     let img = read_rgba(path)?;
     Ok((img.width, img.height))
@@ -231,45 +381,38 @@ pub fn read_channels(path: &Path, channels: usize) -> Result<Image> {
     Ok(read_rgba(path)?.take_channels(channels))
 }
 
-fn encode(img: &Image, format: image::ImageFormat, path: &Path) -> Result<Vec<u8>> {
-    let (w, h) = (img.width, img.height);
-    let mut bytes = Vec::new();
-    let mut cursor = std::io::Cursor::new(&mut bytes);
-    let result = match (format, img.channels) {
-        (image::ImageFormat::Png, c) => {
-            let to8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
-            match c {
-                1 => image::GrayImage::from_raw(w, h, img.data.iter().map(|&v| to8(v)).collect())
-                    .map(image::DynamicImage::ImageLuma8),
-                2 => image::GrayAlphaImage::from_raw(w, h, img.data.iter().map(|&v| to8(v)).collect())
-                    .map(image::DynamicImage::ImageLumaA8),
-                3 => image::RgbImage::from_raw(w, h, img.data.iter().map(|&v| to8(v)).collect())
-                    .map(image::DynamicImage::ImageRgb8),
-                _ => image::RgbaImage::from_raw(w, h, img.take_channels(4).data.iter().map(|&v| to8(v)).collect())
-                    .map(image::DynamicImage::ImageRgba8),
-            }
-            .ok_or_else(|| Error::invalid(path.display().to_string(), "image buffer has the wrong size"))?
-            .write_to(&mut cursor, format)
-        }
-        (image::ImageFormat::Hdr, _) => {
-            let rgb = expand_to(img, 3);
-            image::Rgb32FImage::from_raw(w, h, rgb.data)
-                .map(image::DynamicImage::ImageRgb32F)
-                .ok_or_else(|| Error::invalid(path.display().to_string(), "image buffer has the wrong size"))?
-                .write_to(&mut cursor, format)
-        }
-        (image::ImageFormat::OpenExr, _) => return encode_exr(img, path),
-        _ => {
-            return Err(Error::invalid(path.display().to_string(), "unsupported image format (use png, exr or hdr)"));
-        }
+/// 8-bit PNG of the first 1–4 channels (grey, grey+alpha, RGB, RGBA), values clamped to
+/// [0, 1]. Fast compression with adaptive row filters, the `image` crate's defaults, so the
+/// bytes match files it wrote; the encoder is deterministic.
+fn encode_png(img: &Image, path: &Path) -> Result<Vec<u8>> {
+    let samples = img.channels.min(4);
+    if samples == 0 || img.data.len() != img.pixel_count() * img.channels {
+        return Err(Error::invalid(path.display().to_string(), "image buffer has the wrong size"));
+    }
+    let colour = match samples {
+        1 => png::ColorType::Grayscale,
+        2 => png::ColorType::GrayscaleAlpha,
+        3 => png::ColorType::Rgb,
+        _ => png::ColorType::Rgba,
     };
-    result.map_err(|e| Error::format(path, "encoding", e.to_string()))?;
+    let to8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+    let pixels: Vec<u8> = img.data.chunks_exact(img.channels).flat_map(|px| &px[..samples]).map(|&v| to8(v)).collect();
+    let encoding_error = |e: png::EncodingError| Error::format(path, "encoding", e.to_string());
+    let mut bytes = Vec::new();
+    let mut encoder = png::Encoder::new(&mut bytes, img.width, img.height);
+    encoder.set_color(colour);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::Fast);
+    encoder.set_filter(png::Filter::Adaptive);
+    let mut writer = encoder.write_header().map_err(encoding_error)?;
+    writer.write_image_data(&pixels).map_err(encoding_error)?;
+    writer.finish().map_err(encoding_error)?;
     Ok(bytes)
 }
 
-/// OpenEXR, ZIP-compressed scan lines in increasing order. The `image` crate's writer uses the
-/// exr default (tiles in unspecified order, compressed in parallel), so the same picture could
-/// come out as different bytes from run to run; a run's outputs must be reproducible.
+/// OpenEXR, ZIP-compressed scan lines in increasing order. The exr default (tiles in
+/// unspecified order, compressed in parallel) could give the same picture as different bytes
+/// from run to run; a run's outputs must be reproducible.
 fn encode_exr(img: &Image, path: &Path) -> Result<Vec<u8>> {
     use exr::prelude::{Encoding, Image as ExrImage, SpecificChannels, Vec2, WritableImage};
     let (w, h) = (img.width as usize, img.height as usize);
@@ -316,9 +459,14 @@ fn expand_to(img: &Image, n: usize) -> Image {
 /// Write an image, choosing the format from the extension (png: 8-bit, values clamped to
 /// [0, 1] and written as given; exr: 32-bit float; hdr: RGBE). Atomic.
 pub fn write_image(path: &Path, img: &Image) -> Result<()> {
-    let format = image::ImageFormat::from_path(path)
-        .map_err(|_| Error::invalid(path.display().to_string(), "unknown image extension (use png, exr or hdr)"))?;
-    let bytes = encode(img, format, path)?;
+    let bytes = match format_of(path) {
+        Some(Format::Png) => encode_png(img, path)?,
+        Some(Format::Exr) => encode_exr(img, path)?,
+        Some(Format::Hdr) => rgbe::encode(path, &expand_to(img, 3))?,
+        None => {
+            return Err(Error::invalid(path.display().to_string(), "unknown image extension (use png, exr or hdr)"));
+        }
+    };
     write_atomic(path, &bytes)
 }
 
@@ -407,7 +555,7 @@ mod tests {
         }
     }
 
-    /// Formats the image crate knows but we do not write are refused by name, nothing written.
+    /// Other formats (JPEG here) are refused by name, nothing written.
     #[test]
     fn unsupported_output_format_is_refused() {
         let dir = std::env::temp_dir().join(format!("radiogs-fmt-{}", std::process::id()));
@@ -426,7 +574,197 @@ mod tests {
         let bytes = std::fs::read(&path).unwrap();
         std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
         let err = read_rgba(&path).unwrap_err().to_string();
-        assert!(err.contains("view.png"), "{err}");
+        assert!(err.contains("view.png") && err.contains("ends early"), "{err}");
+        // Every cut into the header or pixels, down to an empty file, fails (never panics)
+        // naming the file, also when only checked or only the size is read. (A file cut in its
+        // 12-byte end chunk still holds every pixel, and reads.)
+        for len in 0..bytes.len() - 12 {
+            std::fs::write(&path, &bytes[..len]).unwrap();
+            for err in [read_rgba(&path).unwrap_err(), check_image(&path).unwrap_err()] {
+                let err = err.to_string();
+                assert!(err.contains("view.png") && err.contains("ends early"), "{len}: {err}");
+            }
+            if len < 33 {
+                let err = image_dimensions(&path).unwrap_err().to_string();
+                assert!(err.contains("view.png") && err.contains("ends early"), "{len}: {err}");
+            }
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A PNG built with the png encoder: any colour type and depth, optional palette and tRNS,
+    /// and gAMA + sRGB chunks that the reader must not apply.
+    fn png_file(w: u32, colour: png::ColorType, depth: png::BitDepth, extra: (&[u8], &[u8]), rows: &[u8]) -> Vec<u8> {
+        let (palette, trns) = extra;
+        let mut bytes = Vec::new();
+        let row_len = (w as usize * colour.samples() * depth as usize).div_ceil(8);
+        let mut enc = png::Encoder::new(&mut bytes, w, (rows.len() / row_len) as u32);
+        enc.set_color(colour);
+        enc.set_depth(depth);
+        enc.set_source_gamma(png::ScaledFloat::new(0.3));
+        enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+        if !palette.is_empty() {
+            enc.set_palette(palette.to_vec());
+        }
+        if !trns.is_empty() {
+            enc.set_trns(trns.to_vec());
+        }
+        let mut writer = enc.write_header().unwrap();
+        writer.write_image_data(rows).unwrap();
+        writer.finish().unwrap();
+        bytes
+    }
+
+    #[test]
+    fn png_colour_types_and_depths_read_as_stored() {
+        use png::BitDepth::{Eight, Four, Sixteen, Two};
+        use png::ColorType::{Grayscale, GrayscaleAlpha, Indexed, Rgb, Rgba};
+        let (o, t) = (1.0, 1.0 / 3.0);
+        let b = |v: f32| v / 255.0;
+        let w = |v: f32| v / 65535.0;
+        let cases: Vec<(Vec<u8>, Vec<[f32; 4]>)> = vec![
+            (
+                png_file(3, Grayscale, Eight, (&[], &[]), &[0, 51, 255]),
+                vec![[0.0, 0.0, 0.0, o], [0.2, 0.2, 0.2, o], [o; 4]],
+            ),
+            (
+                png_file(2, Grayscale, Sixteen, (&[], &[]), &[0x80, 0, 0xff, 0xff]),
+                vec![[w(32768.0), w(32768.0), w(32768.0), o], [o; 4]],
+            ),
+            // Two bits a sample, scaled to the full range.
+            (
+                png_file(4, Grayscale, Two, (&[], &[]), &[0b00_01_10_11]),
+                vec![[0.0, 0.0, 0.0, o], [t, t, t, o], [2.0 * t, 2.0 * t, 2.0 * t, o], [o; 4]],
+            ),
+            // tRNS on grey: that one value becomes transparent.
+            (
+                png_file(2, Grayscale, Eight, (&[], &[0, 51]), &[51, 52]),
+                vec![[0.2, 0.2, 0.2, 0.0], [b(52.0), b(52.0), b(52.0), o]],
+            ),
+            (png_file(1, GrayscaleAlpha, Eight, (&[], &[]), &[10, 20]), vec![[b(10.0), b(10.0), b(10.0), b(20.0)]]),
+            (
+                png_file(1, GrayscaleAlpha, Sixteen, (&[], &[]), &[0, 10, 0xff, 0xff]),
+                vec![[w(10.0), w(10.0), w(10.0), o]],
+            ),
+            (
+                png_file(2, Rgb, Eight, (&[], &[0, 1, 0, 2, 0, 3]), &[1, 2, 3, 4, 5, 6]),
+                vec![[b(1.0), b(2.0), b(3.0), 0.0], [b(4.0), b(5.0), b(6.0), o]],
+            ),
+            (png_file(1, Rgb, Sixteen, (&[], &[]), &[0, 1, 1, 0, 0xff, 0xff]), vec![[w(1.0), w(256.0), o, o]]),
+            (png_file(1, Rgba, Eight, (&[], &[]), &[255, 0, 51, 102]), vec![[o, 0.0, 0.2, 0.4]]),
+            (
+                png_file(1, Rgba, Sixteen, (&[], &[]), &[0, 0, 0, 2, 0x80, 0, 0xff, 0xfe]),
+                vec![[0.0, w(2.0), w(32768.0), w(65534.0)]],
+            ),
+            // Palette, 4 bits an index, tRNS for the first entry only: indices 0, 1, 2 (+ padding).
+            (
+                png_file(3, Indexed, Four, (&[255, 0, 0, 0, 255, 0, 0, 0, 51], &[128]), &[0x01, 0x20]),
+                vec![[o, 0.0, 0.0, b(128.0)], [0.0, o, 0.0, o], [0.0, 0.0, 0.2, o]],
+            ),
+        ];
+        let dir = std::env::temp_dir().join(format!("radiogs-pngtypes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.png");
+        for (i, (bytes, expect)) in cases.iter().enumerate() {
+            std::fs::write(&path, bytes).unwrap();
+            let img = read_rgba(&path).unwrap();
+            assert_eq!((img.width as usize, img.height), (expect.len(), 1), "case {i}");
+            for (got, want) in img.data.chunks_exact(4).zip(expect) {
+                for k in 0..4 {
+                    assert!((got[k] - want[k]).abs() < 1e-6, "case {i}: {got:?} vs {want:?}");
+                }
+            }
+            assert_eq!(check_image(&path).unwrap(), (img.width, 1));
+            assert_eq!(image_dimensions(&path).unwrap(), (img.width, 1));
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn png_bytes_are_reproducible_and_read_back() {
+        let path = Path::new("a.png");
+        for channels in 1..=4 {
+            let mut img = Image::new(37, 9, channels);
+            for (i, v) in img.data.iter_mut().enumerate() {
+                *v = ((i * 7919) % 301) as f32 / 255.0 - 0.1;
+            }
+            let first = encode_png(&img, path).unwrap();
+            assert!(encode_png(&img, path).unwrap() == first);
+            let dir = std::env::temp_dir().join(format!("radiogs-pngrt-{}-{channels}", std::process::id()));
+            write_image(&dir.join("a.png"), &img).unwrap();
+            let back = read_rgba(&dir.join("a.png")).unwrap();
+            let expect = expand_to(&img, 4);
+            // Each value comes back as its nearest 8-bit level (grey within a rounding of it).
+            for (a, b) in expect.data.iter().zip(&back.data) {
+                let level = (a.clamp(0.0, 1.0) * 255.0 + 0.5).floor() / 255.0;
+                assert!((b - level).abs() < 1e-7, "{a} → {b}");
+            }
+            std::fs::remove_dir_all(&dir).unwrap();
+        }
+    }
+
+    #[test]
+    fn corrupt_and_oversized_pngs_are_refused_by_name() {
+        let dir = std::env::temp_dir().join(format!("radiogs-pngbad-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("bad.png");
+        let mut img = Image::new(9, 5, 4);
+        img.data.iter_mut().enumerate().for_each(|(i, v)| *v = (i % 7) as f32 / 6.0);
+        let good = encode_png(&img, &path).unwrap();
+        // Any byte changed gives an image or an error naming the file, never a panic.
+        for i in 0..good.len() {
+            for v in [0u8, 0x7f, 0xff] {
+                let mut bytes = good.clone();
+                bytes[i] = v;
+                std::fs::write(&path, &bytes).unwrap();
+                if let Err(e) = read_rgba(&path) {
+                    assert!(e.to_string().contains("bad.png"), "{e}");
+                }
+            }
+        }
+        // Headers promising too many pixels, or more than the file could hold: refused before
+        // any buffer is made (the signature and IHDR alone, as the encoder writes them).
+        let header = |w: u32, h: u32| {
+            let mut bytes = Vec::new();
+            let mut enc = png::Encoder::new(&mut bytes, w, h);
+            enc.set_color(png::ColorType::Rgba);
+            std::mem::forget(enc.write_header().unwrap());
+            bytes[..33].to_vec()
+        };
+        for (w, h, expect) in [(20000, 20000, "more than the"), (10000, 10000, "cannot fit in 33 bytes")] {
+            std::fs::write(&path, header(w, h)).unwrap();
+            let err = read_rgba(&path).unwrap_err().to_string();
+            assert!(err.contains("bad.png") && err.contains(expect), "{err}");
+            // The size alone is read from the header.
+            assert_eq!(image_dimensions(&path).unwrap(), (w, h));
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn formats_follow_the_extension() {
+        let dir = std::env::temp_dir().join(format!("radiogs-ext-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut img = Image::new(12, 6, 3);
+        img.data.iter_mut().enumerate().for_each(|(i, v)| *v = i as f32 * 0.75);
+        for name in ["a.HDR", "b.hdr", "c.exr", "d.Png"] {
+            write_image(&dir.join(name), &img).unwrap();
+            assert_eq!(image_dimensions(&dir.join(name)).unwrap(), (12, 6), "{name}");
+            assert_eq!(read_rgba(&dir.join(name)).unwrap().width, 12);
+        }
+        // The .hdr holds the RGBE-quantised values (within 1/128 of the largest component).
+        let back = read_rgba(&dir.join("b.hdr")).unwrap();
+        for (a, b) in expand_to(&img, 4).data.chunks_exact(4).zip(back.data.chunks_exact(4)) {
+            assert!(a.iter().zip(b).all(|(x, y)| (x - y).abs() <= a[2].max(1.0) / 128.0), "{a:?} {b:?}");
+        }
+        std::fs::write(dir.join("e.jpg"), b"not read").unwrap();
+        let err = read_rgba(&dir.join("e.jpg")).unwrap_err().to_string();
+        assert!(err.contains("e.jpg") && err.contains("not a known image type"), "{err}");
+        let err = image_dimensions(&dir.join("e.jpg")).unwrap_err().to_string();
+        assert!(err.contains("e.jpg") && err.contains("not a known image type"), "{err}");
+        std::fs::write(dir.join("f.hdr"), b"").unwrap();
+        let err = image_dimensions(&dir.join("f.hdr")).unwrap_err().to_string();
+        assert!(err.contains("f.hdr") && err.contains("ends early"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

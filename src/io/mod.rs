@@ -4,3 +4,4 @@ pub mod atomic;
 pub mod dataset;
 pub mod image;
 pub mod ply;
+pub mod rgbe;

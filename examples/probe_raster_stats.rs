@@ -95,7 +95,8 @@ fn quarter_culling(p: &raster::project::Projected, bins: &raster::tiles::TileBin
                     let mut hits = 0u64;
                     for y in y0..=y1 {
                         for x in x0..=x1 {
-                            hits += (rho(p, i, x as f32 + 0.5, y as f32 + 0.5, filter_inv_square) <= p.rho_max[i]) as u64;
+                            hits +=
+                                (rho(p, i, x as f32 + 0.5, y as f32 + 0.5, filter_inv_square) <= p.rho_max[i]) as u64;
                         }
                     }
                     reached += (hits > 0) as u64;

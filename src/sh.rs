@@ -160,6 +160,34 @@ mod tests {
         }
     }
 
+    /// Each degree sums exactly its (degree + 1)² coefficients (the ones beyond are ignored)
+    /// and matches an f64 sum; degrees above 3 act as 3.
+    #[test]
+    fn eval_uses_the_degree_s_coefficients_only() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        for _ in 0..50 {
+            let mut coeffs = [[0.0f32; 3]; SH_COEFFS];
+            for c in coeffs.iter_mut().flatten() {
+                *c = rng.random_range(-0.5..0.5);
+            }
+            let dir = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0f32)];
+            let b = basis(normalize(dir));
+            for degree in 0..=4u32 {
+                let n = coeff_count(degree);
+                let got = eval(&coeffs, degree, dir);
+                let mut junk = coeffs;
+                for c in junk[n..].iter_mut().flatten() {
+                    *c = 7.0;
+                }
+                assert_eq!(eval(&junk, degree, dir), got, "degree {degree}: reads beyond its coefficients");
+                for ch in 0..3 {
+                    let want = (0.5 + (0..n).map(|k| coeffs[k][ch] as f64 * b[k] as f64).sum::<f64>()).max(0.0);
+                    assert!((got[ch] as f64 - want).abs() < 1e-5, "degree {degree}, channel {ch}: {} vs {want}", got[ch]);
+                }
+            }
+        }
+    }
+
     #[test]
     fn backward_matches_finite_differences() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);

@@ -182,7 +182,11 @@ mod tests {
                 assert_eq!(eval(&junk, degree, dir), got, "degree {degree}: reads beyond its coefficients");
                 for ch in 0..3 {
                     let want = (0.5 + (0..n).map(|k| coeffs[k][ch] as f64 * b[k] as f64).sum::<f64>()).max(0.0);
-                    assert!((got[ch] as f64 - want).abs() < 1e-5, "degree {degree}, channel {ch}: {} vs {want}", got[ch]);
+                    assert!(
+                        (got[ch] as f64 - want).abs() < 1e-5,
+                        "degree {degree}, channel {ch}: {} vs {want}",
+                        got[ch]
+                    );
                 }
             }
         }

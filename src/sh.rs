@@ -160,17 +160,23 @@ mod tests {
         }
     }
 
+    /// Coefficients uniform in ±`amp` and an unnormalised direction in the unit cube.
+    fn random_case(rng: &mut rand_pcg::Pcg64, amp: f32) -> ([[f32; 3]; SH_COEFFS], [f32; 3]) {
+        let mut coeffs = [[0.0f32; 3]; SH_COEFFS];
+        for c in coeffs.iter_mut().flatten() {
+            *c = rng.random_range(-amp..amp);
+        }
+        let dir = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0f32)];
+        (coeffs, dir)
+    }
+
     /// Each degree sums exactly its (degree + 1)² coefficients (the ones beyond are ignored)
     /// and matches an f64 sum; degrees above 3 act as 3.
     #[test]
     fn eval_uses_the_degree_s_coefficients_only() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
         for _ in 0..50 {
-            let mut coeffs = [[0.0f32; 3]; SH_COEFFS];
-            for c in coeffs.iter_mut().flatten() {
-                *c = rng.random_range(-0.5..0.5);
-            }
-            let dir = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0f32)];
+            let (coeffs, dir) = random_case(&mut rng, 0.5);
             let b = basis(normalize(dir));
             for degree in 0..=4u32 {
                 let n = coeff_count(degree);
@@ -196,11 +202,7 @@ mod tests {
     fn backward_matches_finite_differences() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         for _ in 0..20 {
-            let mut coeffs = [[0.0f32; 3]; SH_COEFFS];
-            for c in coeffs.iter_mut().flatten() {
-                *c = rng.random_range(-0.3..0.3);
-            }
-            let dir = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0f32)];
+            let (coeffs, dir) = random_case(&mut rng, 0.3);
             let v_col = [0.7, -0.4, 1.1];
             let loss = |c: &[[f32; 3]; SH_COEFFS], d: [f32; 3]| {
                 let col = eval(c, 3, d);

@@ -271,7 +271,7 @@ fn backward_tile_row(
         }
         let ids = &bins.ids[p0 as usize..p1 as usize];
         let tile_rows = &mut chunk[(p0 - row_start) as usize * stride..(p1 - row_start) as usize * stride];
-        td.load(proj, ids, (tx * TILE, ty * TILE));
+        td.load(proj, ids, &bins.quarter_masks[p0 as usize..p1 as usize], (tx * TILE, ty * TILE));
         td.load_shading(proj);
         hits[0].reserve_tile(td.n);
         hits[1].reserve_tile(td.n);

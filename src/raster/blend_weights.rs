@@ -44,7 +44,8 @@ impl BlendWeights {
                 let mut per_pixel: Vec<Vec<(u32, f32)>> = vec![Vec::new(); px];
                 for tx in 0..bins.tiles_x {
                     let t = (ty * bins.tiles_x + tx) as usize;
-                    td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], (tx * TILE, y0));
+                    let range = bins.offsets[t] as usize..bins.offsets[t + 1] as usize;
+                    td.load(&proj, &bins.ids[range.clone()], &bins.quarter_masks[range], (tx * TILE, y0));
                     for y in y0..y1 {
                         for x in tx * TILE..((tx + 1) * TILE).min(w) {
                             let list = &mut per_pixel[((y - y0) * w + x) as usize];

@@ -146,16 +146,19 @@ const ROW_FEATURES: usize = 16 - BLEND_FEAT;
 const NARROW_FEATURES: usize = 8 - BLEND_FEAT;
 
 impl TileData {
-    /// Load the list `ids` of the tile whose first pixel is `origin`.
-    pub fn load(&mut self, p: &Projected, ids: &[u32], origin: (u32, u32)) {
+    /// Load the list `ids` of the tile whose first pixel is `origin`, with the quarters each
+    /// candidate's footprint touches (`masks`, from `TileBins::quarter_masks`).
+    pub fn load(&mut self, p: &Projected, ids: &[u32], masks: &[u8], origin: (u32, u32)) {
+        debug_assert_eq!(ids.len(), masks.len());
         self.n = ids.len();
         self.origin = origin;
         self.ids.clear();
         self.ids.extend_from_slice(ids);
         self.records.clear();
         self.records.extend(ids.iter().map(|&i| p.packed[i as usize]));
-        // Which quarters each candidate's pixel box reaches, appended without branches (the
-        // outcomes are unpredictable).
+        // Which quarters each candidate reaches (its footprint's quarters and its pixel box's:
+        // the box decides where the bin did not compute the footprint), appended without
+        // branches (the outcomes are unpredictable).
         let n = ids.len();
         let mut lens = [0usize; 4];
         for quarter in &mut self.quarters {
@@ -167,7 +170,7 @@ impl TileData {
         let (end_x, end_y) = (ox + TILE - 1, oy + TILE - 1);
         // Boxes are stored in 16 bits: beyond that every candidate goes to every quarter.
         let huge = end_x > u16::MAX as u32 || end_y > u16::MAX as u32;
-        for (j, r) in self.records.iter().enumerate() {
+        for (j, (r, &mask)) in self.records.iter().zip(masks).enumerate() {
             let (xs, ys) = (r[PK_BOX_X].to_bits(), r[PK_BOX_Y].to_bits());
             let (bx0, bx1, by0, by1) = (xs & 0xffff, xs >> 16, ys & 0xffff, ys >> 16);
             let left = (bx0 < mid_x) & (bx1 >= ox);
@@ -176,7 +179,7 @@ impl TileData {
             let bottom = (by0 <= end_y) & (by1 >= mid_y);
             for (q, inside) in [left & top, right & top, left & bottom, right & bottom].into_iter().enumerate() {
                 self.quarters[q].slot[lens[q]] = j as u32;
-                lens[q] += (inside | huge) as usize;
+                lens[q] += ((inside | huge) & (mask >> q & 1 != 0)) as usize;
             }
         }
         for (quarter, &len) in self.quarters.iter_mut().zip(&lens) {
@@ -1486,8 +1489,8 @@ fn render_tile_row(
     }
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
-        let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
-        td.load(proj, ids, (tx * TILE, ty * TILE));
+        let range = bins.offsets[t] as usize..bins.offsets[t + 1] as usize;
+        td.load(proj, &bins.ids[range.clone()], &bins.quarter_masks[range], (tx * TILE, ty * TILE));
         match rows {
             (_, Some(rows8)) if narrow => td.load_blend_rows8(rows8),
             (rows16, _) => td.load_blend_rows(rows16),
@@ -1568,11 +1571,8 @@ pub fn sorting_error(state: &ForwardState, camera: &Camera, settings: &RasterSet
             || (TileData::default(), Vec::<(f32, f32)>::new()),
             |(td, list), t| {
                 let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
-                td.load(
-                    &state.proj,
-                    &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize],
-                    (tx * TILE, ty * TILE),
-                );
+                let range = bins.offsets[t] as usize..bins.offsets[t + 1] as usize;
+                td.load(&state.proj, &bins.ids[range.clone()], &bins.quarter_masks[range], (tx * TILE, ty * TILE));
                 let mut acc = [0.0f64; 4];
                 for y in (ty * TILE..((ty + 1) * TILE).min(camera.height)).filter(|y| y % step == 0) {
                     for x in (tx * TILE..((tx + 1) * TILE).min(camera.width)).filter(|x| x % step == 0) {

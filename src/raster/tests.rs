@@ -419,7 +419,8 @@ fn gradients_dense_pixels_many_groups_and_channels() {
     let mut most = 0;
     for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
         let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
-        td.load(&proj, &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize], (tx * TILE, ty * TILE));
+        let range = bins.offsets[t] as usize..bins.offsets[t + 1] as usize;
+        td.load(&proj, &bins.ids[range.clone()], &bins.quarter_masks[range], (tx * TILE, ty * TILE));
         for y in ty * TILE..((ty + 1) * TILE).min(cam.height) {
             for x in tx * TILE..((tx + 1) * TILE).min(cam.width) {
                 let mut n = 0;
@@ -727,11 +728,13 @@ fn tile_culling_drops_only_pairs_without_hits() {
 /// A pixel evaluates only its tile quarter's candidates (`TileData::quarters`): every candidate
 /// left out of a quarter has α < α_min at every pixel centre of it (by the f64 world-space
 /// evaluation), the quarters keep the tile's order, and on small surfels they drop most of the
-/// list (else the split would be pointless).
+/// list (else the split would be pointless). The bin's footprint masks must leave out pairs
+/// that the pixel boxes alone keep (else the masks would be pointless).
 #[test]
 fn tile_quarters_leave_out_only_candidates_without_hits() {
     use super::forward::{QUARTER, TileData};
     let camera = camera(96, 80);
+    let mut by_mask = 0usize;
     for (seed, scene, filter) in culling_scenes() {
         let (mut left_out, mut listed) = (0usize, 0usize);
         let settings = RasterSettings { two_sided: true, filter_inv_square: filter, ..RasterSettings::default() };
@@ -741,7 +744,11 @@ fn tile_quarters_leave_out_only_candidates_without_hits() {
         for t in 0..(bins.tiles_x * bins.tiles_y) as usize {
             let (tx, ty) = (t as u32 % bins.tiles_x, t as u32 / bins.tiles_x);
             let ids = &bins.ids[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
-            td.load(&proj, ids, (tx * TILE, ty * TILE));
+            let masks = &bins.quarter_masks[bins.offsets[t] as usize..bins.offsets[t + 1] as usize];
+            td.load(&proj, ids, &vec![0b1111; ids.len()], (tx * TILE, ty * TILE));
+            let box_only: usize = td.quarters.iter().map(|q| q.n).sum();
+            td.load(&proj, ids, masks, (tx * TILE, ty * TILE));
+            by_mask += box_only - td.quarters.iter().map(|q| q.n).sum::<usize>();
             for (q, quarter) in td.quarters.iter().enumerate() {
                 assert_eq!(quarter.n, quarter.slot.len());
                 assert!(quarter.slot.windows(2).all(|w| w[0] < w[1]), "seed {seed}: quarter {q} out of tile order");
@@ -774,6 +781,7 @@ fn tile_quarters_leave_out_only_candidates_without_hits() {
             left_out + listed
         );
     }
+    assert!(by_mask > 1000, "the footprint masks left out only {by_mask} pairs the boxes keep");
 }
 
 /// The recorded forward (`render_recorded`) gives `render`'s outputs, and the backward that

@@ -8,7 +8,9 @@
 //! them per surfel afterwards without atomics.
 //!
 //! A surfel joins only the tiles of its bounding box that its α ≥ α_min footprint touches
-//! ([`Footprint`]): dropped pairs would evaluate to α < α_min at every pixel anyway.
+//! ([`Footprint`]): dropped pairs would evaluate to α < α_min at every pixel anyway. Each pair
+//! also carries which quarters (8 × 8) of its tile the footprint touches (`quarter_masks`):
+//! the compositor lists a candidate only in those (`forward::TileData::load`).
 //!
 //! Parallel decomposition: the per-surfel tile lists (with the footprint test) are built with
 //! rayon over chunks of surfels; the surfels are sorted by depth once (rayon), and counting and
@@ -16,6 +18,7 @@
 //! with no per-tile sort.
 
 use super::TILE;
+use super::forward::QUARTER;
 use super::project::Projected;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -28,6 +31,10 @@ pub struct TileBins {
     pub offsets: Vec<u32>,
     /// Surfel index of each pair, tile-major, depth-sorted within a tile.
     pub ids: Vec<u32>,
+    /// Per pair (as `ids`): the quarters of the tile its footprint touches, bit q for quarter
+    /// q (0 top left, 1 top right, 2 bottom left, 3 bottom right); 0b1111 where the footprint
+    /// was not computed.
+    pub quarter_masks: Vec<u8>,
     /// Surfel i's pairs in generation order are numbers `pair_offsets[i]..pair_offsets[i + 1]`.
     pub pair_offsets: Vec<u32>,
     /// Generation number → position in `ids`.
@@ -66,11 +73,12 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
     // test is f64 work); chunks are joined in surfel order, so the result does not depend on
     // the thread count.
     let chunk = n.div_ceil(4 * rayon::current_num_threads()).max(2048);
-    let parts: Vec<(Vec<u32>, Vec<u32>)> = (0..n.div_ceil(chunk))
+    let parts: Vec<(Vec<u32>, Vec<u8>, Vec<u32>)> = (0..n.div_ceil(chunk))
         .into_par_iter()
         .map(|c| {
             let range = c * chunk..((c + 1) * chunk).min(n);
             let mut tiles_of: Vec<u32> = Vec::with_capacity(range.len() * 4);
+            let mut masks_of: Vec<u8> = Vec::with_capacity(range.len() * 4);
             let mut ends: Vec<u32> = Vec::with_capacity(range.len());
             for i in range {
                 let r = p.rect[i];
@@ -78,41 +86,59 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
                     // A one-row or one-column rectangle almost never loses a tile (the footprint
                     // is connected and spans its box): skip the test there, it costs more than
                     // it saves on the many small surfels of training (rand 10k: +0.06 %
-                    // evaluations).
+                    // evaluations). Its quarters are then left to the pixel box
+                    // (`TileData::load`).
                     let footprint = if r[2] > r[0] && r[3] > r[1] {
                         Footprint::new(p, i, alpha_min, filter_inv_square)
                     } else {
                         None
                     };
                     for ty in r[1]..=r[3] {
-                        // Per row of tiles the footprint covers one or two runs of columns.
-                        let runs = footprint.as_ref().map_or([(r[0], r[2]), (1, 0)], |f| f.tile_runs(ty));
+                        let Some(f) = footprint.as_ref() else {
+                            tiles_of.extend((r[0]..=r[2]).map(|tx| ty * tiles_x + tx));
+                            masks_of.extend((r[0]..=r[2]).map(|_| 0b1111u8));
+                            continue;
+                        };
+                        // Per half row of tiles (a band of quarters) the footprint covers one
+                        // or two runs of quarter columns; a tile joins when a quarter does.
+                        let q = QUARTER as f64;
+                        let band0 = (2 * ty) as f64 * q;
+                        let runs = [f.runs(band0, band0 + q, q), f.runs(band0 + q, band0 + 2.0 * q, q)];
+                        let touches = |band: usize, col: u32| runs[band].iter().any(|&(a, b)| a <= col && col <= b);
                         for tx in r[0]..=r[2] {
-                            if runs.iter().any(|&(a, b)| a <= tx && tx <= b) {
+                            let (left, right) = (2 * tx, 2 * tx + 1);
+                            let mask = touches(0, left) as u8
+                                | (touches(0, right) as u8) << 1
+                                | (touches(1, left) as u8) << 2
+                                | (touches(1, right) as u8) << 3;
+                            if mask != 0 {
                                 tiles_of.push(ty * tiles_x + tx);
+                                masks_of.push(mask);
                             }
                         }
                     }
                 }
                 ends.push(tiles_of.len() as u32);
             }
-            (tiles_of, ends)
+            (tiles_of, masks_of, ends)
         })
         .collect();
     let mut pair_offsets = Vec::with_capacity(n + 1);
     pair_offsets.push(0u32);
-    let mut pair_tiles: Vec<u32> = Vec::with_capacity(parts.iter().map(|(t, _)| t.len()).sum());
+    let total: usize = parts.iter().map(|(t, _, _)| t.len()).sum();
+    let mut pair_tiles: Vec<u32> = Vec::with_capacity(total);
+    let mut pair_masks: Vec<u8> = Vec::with_capacity(total);
     let mut counts = vec![0u32; ntiles + 1];
-    for (tiles_of, ends) in &parts {
+    for (tiles_of, masks_of, ends) in &parts {
         let base = pair_tiles.len() as u32;
         pair_offsets.extend(ends.iter().map(|e| base + e));
         for &t in tiles_of {
             counts[t as usize + 1] += 1;
         }
         pair_tiles.extend_from_slice(tiles_of);
+        pair_masks.extend_from_slice(masks_of);
     }
     drop(parts);
-    let total = pair_tiles.len();
     for t in 0..ntiles {
         counts[t + 1] += counts[t];
     }
@@ -144,10 +170,13 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
         })
         .collect();
     let mut ids = vec![0u32; total];
+    let mut quarter_masks = vec![0u8; total];
     let mut sorted_of_gen = vec![0u32; total];
     let sorted_shared = as_atomic(&mut sorted_of_gen);
-    let band_ids = split_by_offsets(&mut ids, &band_tiles.iter().map(|&t| offsets[t]).collect::<Vec<u32>>());
-    band_ids.into_par_iter().enumerate().for_each(|(b, ids)| {
+    let band_starts: Vec<u32> = band_tiles.iter().map(|&t| offsets[t]).collect();
+    let band_ids = split_by_offsets(&mut ids, &band_starts);
+    let band_masks = split_by_offsets(&mut quarter_masks, &band_starts);
+    band_ids.into_par_iter().zip(band_masks).enumerate().for_each(|(b, (ids, masks))| {
         let (tile0, tile1) = (band_tiles[b] as u32, band_tiles[b + 1] as u32);
         if tile0 == tile1 {
             return;
@@ -164,6 +193,7 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
                 if t >= tile0 && t < tile1 {
                     let slot = &mut fill[(t - tile0) as usize];
                     ids[*slot as usize] = i;
+                    masks[*slot as usize] = pair_masks[g];
                     sorted_shared[g].store(base + *slot, Ordering::Relaxed);
                     *slot += 1;
                 }
@@ -171,7 +201,7 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
         }
     });
     drop(pair_tiles);
-    TileBins { tiles_x, tiles_y, offsets, ids, pair_offsets, sorted_of_gen }
+    TileBins { tiles_x, tiles_y, offsets, ids, quarter_masks, pair_offsets, sorted_of_gen }
 }
 
 /// The pixels where a surfel's α can reach α_min: the ray–disk region ρ₃ = u² + v² ≤ r² (an
@@ -183,9 +213,10 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
 /// For pixel p = (x, y, 1) the plane point is (u, v, 1) ∝ h = x·A + y·B + C with A = T_v × T_w,
 /// B = T_w × T_u, C = T_u × T_v (the cross product the compositor evaluates), so ρ₃ ≤ r² is
 /// the quadratic f(x, y) = h₀² + h₁² − r²·h₂² ≤ 0. When its 2 × 2 part is positive definite
-/// (a bounded ellipse) each row of tiles keeps the columns the ellipse's x interval within the
-/// row's band meets, and those the circle's does (`tile_runs`). Other cases keep every tile.
-/// f64, with the tiles grown by half a pixel, r² by 1 % and the intervals by 10⁻³ px
+/// (a bounded ellipse) each half row of tiles (a band of quarters) keeps the quarter columns
+/// the ellipse's x interval within the band meets, and those the circle's does (`runs`); a
+/// tile is kept when one of its quarters is. Other cases keep every tile and quarter.
+/// f64, with the cells grown by half a pixel, r² by 1 % and the intervals by 10⁻³ px
 /// (conservative).
 struct Footprint {
     /// f(x, y) = qxx x² + 2 qxy x y + qyy y² + 2 lx x + 2 ly y + c.
@@ -201,7 +232,7 @@ struct Footprint {
     ellipse: EllipseShape,
 }
 
-/// What `tile_runs` needs of the ellipse f ≤ 0, computed once per surfel.
+/// What `runs` needs of the ellipse f ≤ 0, computed once per surfel.
 #[derive(Default)]
 struct EllipseShape {
     /// The centre's y and f there (> 0: empty; NaN: degenerate).
@@ -258,14 +289,14 @@ impl Footprint {
         Some(f)
     }
 
-    /// The columns of tile row `ty` whose tile (grown by half a pixel) the filter circle or the
-    /// ellipse touches, as two inclusive runs (a run with start > end is empty). A convex region
-    /// meets the row's band in one x interval: for the ellipse it runs from its left boundary
-    /// at the band's y nearest the leftmost point to its right boundary at the y nearest the
-    /// rightmost point (the boundary is convex in y); for the circle from the centre's row.
-    fn tile_runs(&self, ty: u32) -> [(u32, u32); 2] {
-        let t = TILE as f64;
-        let (y0, y1) = (t * ty as f64, t * (ty + 1) as f64);
+    /// The cells of side `t` (tiles or quarters) in the band of pixel rows y0 ≤ y ≤ y1 (cell
+    /// edges: the cells' pixel centres grown by half a pixel) that the filter circle or the
+    /// ellipse touches, as two inclusive runs of cell columns (a run with start > end is
+    /// empty). A convex region meets the band in one x interval: for the ellipse it runs from
+    /// its left boundary at the band's y nearest the leftmost point to its right boundary at the
+    /// y nearest the rightmost point (the boundary is convex in y); for the circle from the
+    /// centre's row.
+    fn runs(&self, y0: f64, y1: f64, t: f64) -> [(u32, u32); 2] {
         let run = |lo: f64, hi: f64| -> (u32, u32) {
             // A small absolute margin so that rounding never drops a touching tile.
             let (lo, hi) = (lo - 1e-3, hi + 1e-3);

@@ -1036,16 +1036,6 @@ pub(crate) fn norm_depth(z: f32, near: f32, far: f32) -> f32 {
     far / (far - near) * (1.0 - near / z)
 }
 
-/// Per-pixel record layout in the working buffer.
-pub(crate) const REC_COLOUR: usize = 0;
-pub(crate) const REC_ALPHA: usize = 3;
-pub(crate) const REC_DEPTH: usize = 4;
-pub(crate) const REC_MEDIAN: usize = 5;
-pub(crate) const REC_NORMAL: usize = 6;
-pub(crate) const REC_DIST: usize = 9;
-pub(crate) const REC_SURFACE: usize = 10;
-pub(crate) const REC_FEAT: usize = 11;
-
 /// One pixel's running sums in the forward.
 #[derive(Default)]
 struct PixelSums {
@@ -1134,9 +1124,9 @@ impl PixelSums {
         }
     }
 
-    /// The pixel's record (T_final `tf` for the background).
+    /// The pixel's outputs (T_final `tf` for the background) at `at` in its row of tiles.
     #[inline(always)]
-    fn write(&self, r: &mut [f32], tf: f32, s: &RasterSettings, nch: usize, narrow: bool) {
+    fn write(&self, out: &mut RowOutputs, at: usize, tf: f32, s: &RasterSettings, nch: usize, narrow: bool) {
         let row = if narrow {
             let mut row = [0.0; 16];
             row[..8].copy_from_slice(&self.row8.to_array());
@@ -1145,19 +1135,30 @@ impl PixelSums {
             self.row.to_array()
         };
         let a = row[BLEND_ONE];
-        for ch in 0..3 {
-            r[REC_COLOUR + ch] = if s.outputs.colour { row[ch] } else { 0.0 } + tf * s.background[ch];
-            r[REC_NORMAL + ch] = row[3 + ch];
+        out.alpha[at] = a;
+        if let Some(c) = out.colour.as_deref_mut() {
+            c[at] = std::array::from_fn(|ch| row[ch] + tf * s.background[ch]);
         }
-        r[REC_ALPHA] = a;
-        r[REC_DEPTH] = if a > 0.0 { self.depth / a } else { 0.0 };
-        r[REC_MEDIAN] = self.median;
-        r[REC_DIST] = (a * self.m2 - self.m1 * self.m1).max(0.0);
-        r[REC_SURFACE] = if a > 0.0 { self.surface / a } else { 0.0 };
+        if let Some(n) = out.normal.as_deref_mut() {
+            n[at] = [row[3], row[4], row[5]];
+        }
+        if let Some(d) = out.depth.as_deref_mut() {
+            d[at] = if a > 0.0 { self.depth / a } else { 0.0 };
+        }
+        if let Some(m) = out.median.as_deref_mut() {
+            m[at] = self.median;
+        }
+        if let Some(d) = out.distortion.as_deref_mut() {
+            d[at] = (a * self.m2 - self.m1 * self.m1).max(0.0);
+        }
+        if let Some(d) = out.surface.as_deref_mut() {
+            d[at] = if a > 0.0 { self.surface / a } else { 0.0 };
+        }
+        let f = &mut out.features[at * nch..(at + 1) * nch];
         if nch <= ROW_FEATURES {
-            r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
+            f.copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
         } else {
-            r[REC_FEAT..REC_FEAT + nch].copy_from_slice(&self.features[..nch]);
+            f.copy_from_slice(&self.features[..nch]);
         }
     }
 }
@@ -1254,41 +1255,57 @@ fn render_impl(
     let rows8: Option<Vec<f32x8>> = (record.is_none() && lean_outputs(settings, nch) && nch <= NARROW_FEATURES)
         .then(|| rows.par_iter().map(|r| f32x8::new(r.to_array()[..8].try_into().unwrap())).collect());
     let row_sets = (rows.as_slice(), rows8.as_deref());
-    let stride = REC_FEAT + nch;
-    let mut buf = vec![0.0f32; (w * h) as usize * stride];
+    let mut out = RenderOutput::sized(w, h, nch, settings);
     let add = |a: (u64, u64), b: (u64, u64)| (a.0 + b.0, a.1 + b.1);
     let (evaluations_performed, evaluations) = if w == 0 || h == 0 {
         (0, 0)
     } else {
-        let chunks = buf.par_chunks_mut((TILE * w) as usize * stride).enumerate();
+        // Each row of tiles writes its own slices of the outputs.
+        let tile_rows = RowOutputs::split(&mut out, TILE * w, nch).into_par_iter().enumerate();
         match record.as_mut() {
             Some(rec) => {
                 rec.rows.resize_with(bins.tiles_y as usize, RowHits::default);
                 let cap = budget_bytes / std::mem::size_of::<RecordedHit>() / bins.tiles_y.max(1) as usize;
-                chunks
+                tile_rows
                     .zip(rec.rows.par_iter_mut())
                     .map_init(
                         || (TileData::default(), Vec::new()),
-                        |(td, pending), ((ty, chunk), row)| {
+                        |(td, pending), ((ty, mut row_out), row)| {
                             let rec = Some((row, pending, cap));
                             render_tile_row(
-                                &proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, row_sets, rec,
+                                &proj,
+                                &bins,
+                                camera,
+                                settings,
+                                features,
+                                ty as u32,
+                                &mut row_out,
+                                td,
+                                row_sets,
+                                rec,
                             )
                         },
                     )
                     .reduce(|| (0, 0), add)
             }
-            None => chunks
-                .map_init(TileData::default, |td, (ty, chunk)| {
+            None => tile_rows
+                .map_init(TileData::default, |td, (ty, mut row_out)| {
                     render_tile_row(
-                        &proj, &bins, camera, settings, features, ty as u32, chunk, stride, td, row_sets, None,
+                        &proj,
+                        &bins,
+                        camera,
+                        settings,
+                        features,
+                        ty as u32,
+                        &mut row_out,
+                        td,
+                        row_sets,
+                        None,
                     )
                 })
                 .reduce(|| (0, 0), add),
         }
     };
-    let out = split_outputs(&buf, w, h, stride, nch, settings);
-    drop(buf);
     let radii = proj.radius.clone();
     let visible = radii.iter().map(|&r| r > 0.0).collect();
     let state = ForwardState {
@@ -1305,91 +1322,71 @@ fn render_impl(
     (out, state)
 }
 
-/// The working buffer's records (`stride` floats per pixel) into the requested outputs, in
-/// one parallel pass over rows (each record is read once).
-fn split_outputs(buf: &[f32], w: u32, h: u32, stride: usize, nch: usize, s: &RasterSettings) -> RenderOutput {
-    let px = (w * h) as usize;
-    let o = s.outputs;
-    let sized = |on: bool, len: usize| if on { len } else { 0 };
-    let mut out = RenderOutput {
-        width: w,
-        height: h,
-        alpha: vec![0.0; px],
-        colour: vec![[0.0; 3]; sized(o.colour, px)],
-        depth: vec![0.0; sized(o.depth, px)],
-        median_depth: vec![0.0; sized(o.median_depth, px)],
-        normal: vec![[0.0; 3]; sized(o.normal, px)],
-        distortion: vec![0.0; sized(o.distortion, px)],
-        surface_depth: vec![0.0; sized(o.surface_depth, px)],
-        features: vec![0.0; px * nch],
-    };
-    if px == 0 {
-        return out;
-    }
-    // One job per row of pixels: its records and its slice of every requested output (None
-    // for the outputs not requested).
-    struct Row<'a> {
-        rec: &'a [f32],
-        alpha: &'a mut [f32],
-        colour: Option<&'a mut [[f32; 3]]>,
-        depth: Option<&'a mut [f32]>,
-        median: Option<&'a mut [f32]>,
-        normal: Option<&'a mut [[f32; 3]]>,
-        distortion: Option<&'a mut [f32]>,
-        surface: Option<&'a mut [f32]>,
-        features: &'a mut [f32],
-    }
-    fn rows_of<T>(v: &mut [T], w: usize) -> Vec<Option<&mut [T]>> {
-        if v.is_empty() { Vec::new() } else { v.chunks_mut(w).map(Some).collect() }
-    }
-    let wu = w as usize;
-    let mut colour = rows_of(&mut out.colour, wu).into_iter();
-    let mut depth = rows_of(&mut out.depth, wu).into_iter();
-    let mut median = rows_of(&mut out.median_depth, wu).into_iter();
-    let mut normal = rows_of(&mut out.normal, wu).into_iter();
-    let mut distortion = rows_of(&mut out.distortion, wu).into_iter();
-    let mut surface = rows_of(&mut out.surface_depth, wu).into_iter();
-    let mut features = out.features.chunks_mut((wu * nch).max(1));
-    let rows: Vec<Row> = buf
-        .chunks(wu * stride)
-        .zip(out.alpha.chunks_mut(wu))
-        .map(|(rec, alpha)| Row {
-            rec,
-            alpha,
-            colour: colour.next().flatten(),
-            depth: depth.next().flatten(),
-            median: median.next().flatten(),
-            normal: normal.next().flatten(),
-            distortion: distortion.next().flatten(),
-            surface: surface.next().flatten(),
-            features: if nch > 0 { features.next().unwrap_or_default() } else { &mut [] },
-        })
-        .collect();
-    rows.into_par_iter().for_each(|mut row| {
-        for (x, r) in row.rec.chunks_exact(stride).enumerate() {
-            row.alpha[x] = r[REC_ALPHA];
-            let scalar = |out: &mut Option<&mut [f32]>, at: usize| {
-                if let Some(o) = out.as_deref_mut() {
-                    o[x] = r[at];
-                }
-            };
-            let vec3 = |out: &mut Option<&mut [[f32; 3]]>, at: usize| {
-                if let Some(o) = out.as_deref_mut() {
-                    o[x] = [r[at], r[at + 1], r[at + 2]];
-                }
-            };
-            vec3(&mut row.colour, REC_COLOUR);
-            vec3(&mut row.normal, REC_NORMAL);
-            scalar(&mut row.depth, REC_DEPTH);
-            scalar(&mut row.median, REC_MEDIAN);
-            scalar(&mut row.distortion, REC_DIST);
-            scalar(&mut row.surface, REC_SURFACE);
-            if nch > 0 {
-                row.features[x * nch..(x + 1) * nch].copy_from_slice(&r[REC_FEAT..REC_FEAT + nch]);
-            }
+impl RenderOutput {
+    /// Zeroed outputs for a w × h render: alpha always, the others when requested (empty
+    /// otherwise), `nch` feature channels.
+    fn sized(w: u32, h: u32, nch: usize, s: &RasterSettings) -> RenderOutput {
+        let px = (w * h) as usize;
+        let o = s.outputs;
+        let sized = |on: bool| if on { px } else { 0 };
+        RenderOutput {
+            width: w,
+            height: h,
+            alpha: vec![0.0; px],
+            colour: vec![[0.0; 3]; sized(o.colour)],
+            depth: vec![0.0; sized(o.depth)],
+            median_depth: vec![0.0; sized(o.median_depth)],
+            normal: vec![[0.0; 3]; sized(o.normal)],
+            distortion: vec![0.0; sized(o.distortion)],
+            surface_depth: vec![0.0; sized(o.surface_depth)],
+            features: vec![0.0; px * nch],
         }
-    });
-    out
+    }
+}
+
+/// One row of tiles' slices of the render's outputs (None: not requested), pixel-major
+/// within the row; the compositor writes each pixel's sums straight into them.
+struct RowOutputs<'a> {
+    alpha: &'a mut [f32],
+    colour: Option<&'a mut [[f32; 3]]>,
+    depth: Option<&'a mut [f32]>,
+    median: Option<&'a mut [f32]>,
+    normal: Option<&'a mut [[f32; 3]]>,
+    distortion: Option<&'a mut [f32]>,
+    surface: Option<&'a mut [f32]>,
+    /// `nch` values per pixel.
+    features: &'a mut [f32],
+}
+
+impl<'a> RowOutputs<'a> {
+    /// The outputs cut into rows of `row_px` pixels (the last may be shorter).
+    fn split(out: &'a mut RenderOutput, row_px: u32, nch: usize) -> Vec<RowOutputs<'a>> {
+        let row_px = row_px as usize;
+        fn rows_of<T>(v: &mut [T], len: usize) -> impl Iterator<Item = Option<&mut [T]>> {
+            let rows: Vec<_> = if v.is_empty() { Vec::new() } else { v.chunks_mut(len).map(Some).collect() };
+            rows.into_iter().chain(std::iter::repeat_with(|| None))
+        }
+        let mut colour = rows_of(&mut out.colour, row_px);
+        let mut depth = rows_of(&mut out.depth, row_px);
+        let mut median = rows_of(&mut out.median_depth, row_px);
+        let mut normal = rows_of(&mut out.normal, row_px);
+        let mut distortion = rows_of(&mut out.distortion, row_px);
+        let mut surface = rows_of(&mut out.surface_depth, row_px);
+        let mut features = rows_of(&mut out.features, row_px * nch.max(1));
+        out.alpha
+            .chunks_mut(row_px)
+            .map(|alpha| RowOutputs {
+                alpha,
+                colour: colour.next().flatten(),
+                depth: depth.next().flatten(),
+                median: median.next().flatten(),
+                normal: normal.next().flatten(),
+                distortion: distortion.next().flatten(),
+                surface: surface.next().flatten(),
+                features: features.next().flatten().unwrap_or_default(),
+            })
+            .collect()
+    }
 }
 
 /// Whether a render needs only the blend row per hit (see [`PixelSums::blend`]).
@@ -1458,8 +1455,7 @@ fn render_tile_row(
     s: &RasterSettings,
     features: Option<Features>,
     ty: u32,
-    chunk: &mut [f32],
-    stride: usize,
+    out: &mut RowOutputs,
     td: &mut TileData,
     // Per-surfel blend rows, and their narrow form when the render blends those instead.
     rows: (&[f32x16], Option<&[f32x8]>),
@@ -1541,12 +1537,11 @@ fn render_tile_row(
                         res
                     }
                 };
-                let at = |x: u32| local(x) * stride;
-                sa.write(&mut chunk[at(x)..][..stride], ta, s, nch, narrow);
+                sa.write(out, local(x), ta, s, nch, narrow);
                 evals.0 += eva.performed as u64;
                 evals.1 += eva.tile_list as u64;
                 if two {
-                    sb.write(&mut chunk[at(x + 1)..][..stride], tb, s, nch, narrow);
+                    sb.write(out, local(x + 1), tb, s, nch, narrow);
                     evals.0 += evb.performed as u64;
                     evals.1 += evb.tile_list as u64;
                 }

@@ -216,24 +216,31 @@ impl TileData {
 /// Built once per surfel per render; a tile then copies one row per candidate instead of
 /// gathering colour and normal and assembling the row (a large surfel sits in many tiles).
 fn blend_rows(p: &Projected, features: Option<Features>) -> Vec<f32x16> {
-    let nch = features.map_or(0, |f| f.channels);
-    (0..p.normal.len())
-        .into_par_iter()
-        .map(|id| {
-            let mut row = [0.0f32; 16];
-            if let Some(c) = p.colour.get(id) {
-                row[..3].copy_from_slice(c);
-            }
-            row[3..6].copy_from_slice(&p.normal[id]);
-            row[BLEND_ONE] = 1.0;
-            if let Some(fe) = features
-                && nch <= ROW_FEATURES
-            {
-                row[BLEND_FEAT..BLEND_FEAT + nch].copy_from_slice(&fe.data[id * nch..(id + 1) * nch]);
-            }
-            f32x16::new(row)
-        })
-        .collect()
+    (0..p.normal.len()).into_par_iter().map(|id| f32x16::new(blend_row(p, features, id))).collect()
+}
+
+/// The rows' first 8 lanes (colour, normal, 1, at most one feature), for narrow renders.
+fn blend_rows8(p: &Projected, features: Option<Features>) -> Vec<f32x8> {
+    (0..p.normal.len()).into_par_iter().map(|id| f32x8::new(blend_row(p, features, id))).collect()
+}
+
+/// Surfel `id`'s blend row in L lanes: the features that fit are copied (the caller blends
+/// the others channel by channel).
+#[inline(always)]
+fn blend_row<const L: usize>(p: &Projected, features: Option<Features>, id: usize) -> [f32; L] {
+    let mut row = [0.0f32; L];
+    if let Some(c) = p.colour.get(id) {
+        row[..3].copy_from_slice(c);
+    }
+    row[3..6].copy_from_slice(&p.normal[id]);
+    row[BLEND_ONE] = 1.0;
+    if let Some(fe) = features
+        && fe.channels <= L - BLEND_FEAT
+    {
+        let nch = fe.channels;
+        row[BLEND_FEAT..BLEND_FEAT + nch].copy_from_slice(&fe.data[id * nch..(id + 1) * nch]);
+    }
+    row
 }
 
 /// Ring-buffer size of the window (a power of two ≥ MAX_WINDOW).
@@ -1250,10 +1257,10 @@ fn render_impl(
     }
     let proj = project::project(surfels, camera, settings);
     let bins = tiles::bin(&proj, w, h, settings.alpha_min, settings.filter_inv_square);
-    let rows = blend_rows(&proj, features);
-    // Narrow rows when they hold all a non-recording render blends.
-    let rows8: Option<Vec<f32x8>> = (record.is_none() && lean_outputs(settings, nch) && nch <= NARROW_FEATURES)
-        .then(|| rows.par_iter().map(|r| f32x8::new(r.to_array()[..8].try_into().unwrap())).collect());
+    // Narrow rows when they hold all a non-recording render blends (then no wide ones).
+    let narrow = record.is_none() && lean_outputs(settings, nch) && nch <= NARROW_FEATURES;
+    let rows = if narrow { Vec::new() } else { blend_rows(&proj, features) };
+    let rows8: Option<Vec<f32x8>> = narrow.then(|| blend_rows8(&proj, features));
     let row_sets = (rows.as_slice(), rows8.as_deref());
     let mut out = RenderOutput::sized(w, h, nch, settings);
     let add = |a: (u64, u64), b: (u64, u64)| (a.0 + b.0, a.1 + b.1);

@@ -682,6 +682,10 @@ fn tile_culling_drops_only_pairs_without_hits() {
         let full = super::tiles::bin(&proj, camera.width, camera.height, 0.0, filter);
         let tiles = (full.tiles_x * full.tiles_y) as usize;
         for t in 0..tiles {
+            // Every tile's list in (centre depth, index) order.
+            let list = &culled.ids[culled.offsets[t] as usize..culled.offsets[t + 1] as usize];
+            let key = |i: u32| (proj.depth[i as usize], i);
+            assert!(list.windows(2).all(|w| key(w[0]) < key(w[1])), "seed {seed}: tile {t} out of depth order");
             let kept: std::collections::HashSet<u32> =
                 culled.ids[culled.offsets[t] as usize..culled.offsets[t + 1] as usize].iter().copied().collect();
             let (tx, ty) = (t as u32 % full.tiles_x, t as u32 / full.tiles_x);

@@ -1269,6 +1269,9 @@ fn render_impl(
     } else {
         // Each row of tiles writes its own slices of the outputs.
         let tile_rows = RowOutputs::split(&mut out, TILE * w, nch).into_par_iter().enumerate();
+        let render_row = |td: &mut TileData, ty: usize, row_out: &mut RowOutputs, rec: Option<RowRecord>| {
+            render_tile_row(&proj, &bins, camera, settings, features, ty as u32, row_out, td, row_sets, rec)
+        };
         match record.as_mut() {
             Some(rec) => {
                 rec.rows.resize_with(bins.tiles_y as usize, RowHits::default);
@@ -1278,38 +1281,13 @@ fn render_impl(
                     .map_init(
                         || (TileData::default(), Vec::new()),
                         |(td, pending), ((ty, mut row_out), row)| {
-                            let rec = Some((row, pending, cap));
-                            render_tile_row(
-                                &proj,
-                                &bins,
-                                camera,
-                                settings,
-                                features,
-                                ty as u32,
-                                &mut row_out,
-                                td,
-                                row_sets,
-                                rec,
-                            )
+                            render_row(td, ty, &mut row_out, Some((row, pending, cap)))
                         },
                     )
                     .reduce(|| (0, 0), add)
             }
             None => tile_rows
-                .map_init(TileData::default, |td, (ty, mut row_out)| {
-                    render_tile_row(
-                        &proj,
-                        &bins,
-                        camera,
-                        settings,
-                        features,
-                        ty as u32,
-                        &mut row_out,
-                        td,
-                        row_sets,
-                        None,
-                    )
-                })
+                .map_init(TileData::default, |td, (ty, mut row_out)| render_row(td, ty, &mut row_out, None))
                 .reduce(|| (0, 0), add),
         }
     };
@@ -1396,6 +1374,10 @@ impl<'a> RowOutputs<'a> {
     }
 }
 
+/// A row of tiles' hit record, a scratch list for the second pixel of a pair (whose blends
+/// interleave with the first's) and the row's share of the record budget.
+type RowRecord<'a> = (&'a mut RowHits, &'a mut Vec<RecordedHit>, usize);
+
 /// Whether a render needs only the blend row per hit (see [`PixelSums::blend`]).
 fn lean_outputs(s: &RasterSettings, nch: usize) -> bool {
     let o = s.outputs;
@@ -1466,9 +1448,7 @@ fn render_tile_row(
     td: &mut TileData,
     // Per-surfel blend rows, and their narrow form when the render blends those instead.
     rows: (&[f32x16], Option<&[f32x8]>),
-    // The row's hit record, a scratch list for the second pixel of a pair (whose blends
-    // interleave with the first's) and the row's share of the record budget.
-    mut record: Option<(&mut RowHits, &mut Vec<RecordedHit>, usize)>,
+    mut record: Option<RowRecord>,
 ) -> (u64, u64) {
     let w = camera.width;
     let h = camera.height;

@@ -19,8 +19,8 @@
 //! features Σ w f, and (forward only) the surface-aware depth of GauS-SLAM.
 //!
 //! Parallel decomposition: rayon over rows of tiles; inside a tile, pixel by pixel over the
-//! list of the pixel's tile quarter (8 × 8: the tile's candidates whose pixel box reaches it,
-//! in tile order, so the hits and their order are the tile list's), 16 candidates at a time
+//! list of the pixel's tile quarter (8 × 8: the tile's candidates whose pixel box and footprint
+//! (the bin's quarter mask) reach it, in tile order, so the hits and their order are the tile list's), 16 candidates at a time
 //! (f32x16, one structure of arrays per group, transposed from per-surfel packed records). A
 //! division-free test of ρ against the cut-off skips groups that cannot hit before the divide.
 //! The window is per hit: scalars for K = 1, for K ≤ 16 three AVX-512 registers (branchless
@@ -113,8 +113,8 @@ pub(crate) const QUARTER: u32 = TILE / 2;
 
 /// One tile's candidates: per candidate its packed record (`records`, what the backward
 /// gathers from) and, per quarter of the tile (8 × 8 pixels: 0 top left, 1 top right, 2 bottom
-/// left, 3 bottom right), the candidates whose pixel box (`Projected::pixels`) reaches it, in
-/// tile order. A pixel evaluates only its quarter's list: every other candidate has α < α_min
+/// left, 3 bottom right), the candidates whose pixel box (`Projected::pixels`) and footprint
+/// (`TileBins::quarter_masks`) both reach it, in tile order. A pixel evaluates only its quarter's list: every other candidate has α < α_min
 /// there, so the hits and their order are those of the whole list, at a fraction of the
 /// evaluations when surfels are small (training).
 #[derive(Default, Clone, Debug)]

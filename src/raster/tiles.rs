@@ -13,9 +13,9 @@
 //! the compositor lists a candidate only in those (`forward::TileData::load`).
 //!
 //! Parallel decomposition: the per-surfel tile lists (with the footprint test) are built with
-//! rayon over chunks of surfels; the surfels are sorted by depth once (rayon), and counting and
-//! scattering the pairs in that order are serial O(pairs): each tile's list comes out sorted
-//! with no per-tile sort.
+//! rayon over chunks of surfels; the surfels that have pairs are put in depth order once (a
+//! serial radix sort, [`depth_order`]), and the pairs are scattered in that order (in parallel
+//! over bands of tiles): each tile's list comes out sorted with no per-tile sort.
 
 use super::TILE;
 use super::forward::QUARTER;
@@ -159,14 +159,13 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
         *bound = offsets[..=ntiles].partition_point(|&o| o < want).min(ntiles);
     }
     band_tiles[bands] = ntiles;
-    // Per surfel in depth order: its pair range and its first and last tile index (pairs run in
-    // tile order), read once here so that each band streams through them.
+    // Per surfel in depth order (each has a pair): its pair range and its first and last tile
+    // index (pairs run in tile order), read once here so that each band streams through them.
     let spans: Vec<[u32; 4]> = order
         .par_iter()
         .map(|&i| {
-            let i = i as usize;
-            let (g0, g1) = (pair_offsets[i], pair_offsets[i + 1]);
-            if g0 == g1 { [g0, g1, 1, 0] } else { [g0, g1, pair_tiles[g0 as usize], pair_tiles[g1 as usize - 1]] }
+            let (g0, g1) = (pair_offsets[i as usize], pair_offsets[i as usize + 1]);
+            [g0, g1, pair_tiles[g0 as usize], pair_tiles[g1 as usize - 1]]
         })
         .collect();
     let mut ids = vec![0u32; total];

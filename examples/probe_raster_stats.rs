@@ -40,6 +40,22 @@ fn main() -> anyhow::Result<()> {
         state.evaluations as f64 / covered
     );
     println!("hits blended: {:.2} per covered pixel", weights.ids.len() as f64 / covered);
+    // Where along each pixel's transmittance the blended hits sit.
+    let thresholds = [0.5f32, 0.1, 0.01, 1.0 / 255.0, 1e-3];
+    let mut below = [0u64; 5];
+    for px in 0..weights.alpha.len() {
+        let mut t = 1.0f32;
+        for k in weights.offsets[px] as usize..weights.offsets[px + 1] as usize {
+            for (b, th) in below.iter_mut().zip(thresholds) {
+                *b += (t < th) as u64;
+            }
+            t -= weights.weights[k];
+        }
+    }
+    println!(
+        "hits blended per covered pixel with T below 0.5 / 0.1 / 0.01 / 1/255 / 1e-3: {}",
+        below.map(|b| format!("{:.2}", b as f64 / covered)).join(" / ")
+    );
     let mut radii: Vec<f32> = state.radii.iter().copied().filter(|&r| r > 0.0).collect();
     radii.sort_by(|a, b| a.total_cmp(b));
     if !radii.is_empty() {

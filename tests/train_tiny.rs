@@ -312,6 +312,7 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
             mode: RenderMode::Surfel,
             envmap: None,
             filter_inv_square: None,
+            display_stop: 0.0,
         })
         .unwrap();
         let img = radiogs::io::image::read_rgba(&out.join("r_0.png")).unwrap();

@@ -22,6 +22,36 @@ pub struct RelightBenchArgs {
     /// Only the rasterised frames (skip the traced set-up; for profiling).
     #[arg(long)]
     pub raster_only: bool,
+    /// Also time display frames that stop compositing once T < this (0: only exact frames),
+    /// and report how far their pixels are from the exact frame's.
+    #[arg(long, default_value_t = raster::DISPLAY_STOP)]
+    pub display_stop: f32,
+}
+
+/// How a display frame's colours differ from the exact frame's, in 8-bit levels of the
+/// displayed value (SH colour is display-encoded, clipped to [0, 1]).
+struct FrameDifference {
+    max_levels: f32,
+    /// Pixels whose largest channel difference exceeds one level.
+    over_one: usize,
+    /// PSNR of the display frame against the exact one (∞ when equal).
+    psnr: f64,
+}
+
+fn frame_difference(exact: &[[f32; 3]], shown: &[[f32; 3]]) -> FrameDifference {
+    let (mut max_levels, mut over_one, mut sq) = (0.0f32, 0usize, 0.0f64);
+    for (a, b) in exact.iter().zip(shown) {
+        let mut px = 0.0f32;
+        for c in 0..3 {
+            let d = (a[c].clamp(0.0, 1.0) - b[c].clamp(0.0, 1.0)).abs();
+            px = px.max(d * 255.0);
+            sq += (d as f64).powi(2);
+        }
+        max_levels = max_levels.max(px);
+        over_one += (px > 1.0) as usize;
+    }
+    let mse = sq / (3 * exact.len().max(1)) as f64;
+    FrameDifference { max_levels, over_one, psnr: if mse > 0.0 { -10.0 * mse.log10() } else { f64::INFINITY } }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -50,19 +80,39 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
         anyhow::bail!("{}: the run's dataset has no views", cfg.data.display());
     };
     let repeats = args.repeats.max(1);
+    if !(0.0..1.0).contains(&args.display_stop) {
+        anyhow::bail!("--display-stop {}: must be in [0, 1)", args.display_stop);
+    }
     let mut raster_ms = serde_json::Map::new();
+    let mut display_ms = serde_json::Map::new();
     for &size in &args.sizes {
         let cam = view.camera.scaled(size, size);
         let settings = relit_frame_settings(&cfg);
-        let _ = raster::render(&surfels, &cam, &settings, None);
-        let times: Vec<f64> = (0..repeats)
-            .map(|_| {
+        let display = RasterSettings { display_stop: args.display_stop, ..settings.clone() };
+        let exact = raster::render(&surfels, &cam, &settings, None).0;
+        let shown = raster::render(&surfels, &cam, &display, None).0;
+        // Exact and display frames alternate, so that both see the same machine.
+        let (mut times, mut display_times) = (Vec::new(), Vec::new());
+        for _ in 0..repeats {
+            let t = Instant::now();
+            let _ = raster::render(&surfels, &cam, &settings, None);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            if args.display_stop > 0.0 {
                 let t = Instant::now();
-                let _ = raster::render(&surfels, &cam, &settings, None);
-                t.elapsed().as_secs_f64() * 1e3
-            })
-            .collect();
+                let _ = raster::render(&surfels, &cam, &display, None);
+                display_times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
         let ms = median(times);
+        if args.display_stop > 0.0 {
+            let d = frame_difference(&exact.colour, &shown.colour);
+            let dms = median(display_times);
+            display_ms.insert(
+                format!("{size}"),
+                serde_json::json!({"ms": dms, "fps": 1e3 / dms, "max_levels": d.max_levels,
+                    "pixels_over_one_level": d.over_one, "psnr_db": d.psnr}),
+            );
+        }
         // The pre-pass of a frame: projection and tile binning (the rest is compositing).
         let prepass: Vec<f64> = (0..repeats)
             .map(|_| {
@@ -83,6 +133,9 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
         "threads": rayon::current_num_threads(),
         "rasterised_relit_frame": raster_ms,
     });
+    if args.display_stop > 0.0 {
+        report["display_frame"] = serde_json::json!({"display_stop": args.display_stop, "sizes": display_ms});
+    }
     if args.raster_only {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());

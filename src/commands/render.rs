@@ -103,6 +103,13 @@ pub struct RenderArgs {
     #[arg(short = 'r', long)]
     #[serde(default)]
     pub resolution: Option<u32>,
+    /// Rasterised frames stop compositing a pixel once its transmittance falls below this
+    /// (0 = exact, the default; e.g. 1/255 ≈ 0.0039 for 8-bit viewing: a pixel then misses
+    /// at most that fraction of the colour behind it, and renders ~15 % faster on a trained
+    /// scene). Only with --mode surfel.
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub display_stop: f32,
     /// Rasterised surfels or ray-traced surfels.
     #[arg(long, value_enum, default_value_t = RenderMode::Surfel)]
     #[serde(default)]
@@ -186,7 +193,20 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         distortion: args.aux,
         surface_depth: args.aux,
     };
-    let settings = RasterSettings { window: args.k, two_sided, outputs, filter_inv_square, ..Default::default() };
+    if !(0.0..1.0).contains(&args.display_stop) {
+        bail!("--display-stop {}: must be in [0, 1) (a transmittance)", args.display_stop);
+    }
+    if args.display_stop > 0.0 && args.mode != RenderMode::Surfel {
+        bail!("--display-stop is only available with --mode surfel");
+    }
+    let settings = RasterSettings {
+        window: args.k,
+        two_sided,
+        outputs,
+        filter_inv_square,
+        display_stop: args.display_stop,
+        ..Default::default()
+    };
     let trace_settings = crate::trace::TraceSettings { two_sided, ..Default::default() };
     if args.mode == RenderMode::Traced && args.aux {
         bail!("--aux is only available with --mode surfel");
@@ -198,6 +218,9 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         && let Some(run) = &args.run
         && crate::relight::run_mode(run) == Some(crate::relight::RelightMode::Traced)
     {
+        if args.display_stop > 0.0 {
+            bail!("--display-stop: {} was relit in traced mode and renders with --mode pbr", run.display());
+        }
         eprintln!("{}: a ray-traced relit run renders with --mode pbr", run.display());
         return render_pbr_modes(&RenderArgs { mode: RenderMode::Pbr, ..args.clone() }, &views);
     }
@@ -362,6 +385,7 @@ mod tests {
             mode: RenderMode::Surfel,
             envmap: None,
             filter_inv_square: None,
+            display_stop: 0.0,
         };
         run(&args).unwrap();
         let png = crate::io::image::read_rgba(&out.join("front.png")).unwrap();
@@ -396,6 +420,23 @@ mod tests {
         }
         args.aux = true;
         assert!(run(&args).unwrap_err().to_string().contains("--aux"));
+        args.aux = false;
+        args.display_stop = 0.01;
+        assert!(run(&args).unwrap_err().to_string().contains("--display-stop"));
+        // A display frame: the opaque sphere's interior as the exact frame's, to 8-bit display.
+        args.mode = RenderMode::Surfel;
+        args.out = dir.join("display");
+        run(&args).unwrap();
+        let shown = crate::io::image::read_rgba(&dir.join("display/side.exr")).unwrap();
+        for c in 0..4 {
+            let (a, b) = (exr.pixel(cx, cy)[c], shown.pixel(cx, cy)[c]);
+            assert!((a - b).abs() <= 0.01, "channel {c}: exact {a} vs display {b}");
+        }
+        for bad in [-0.1, 1.0, f32::NAN] {
+            args.display_stop = bad;
+            assert!(run(&args).unwrap_err().to_string().contains("--display-stop"), "{bad}");
+        }
+        args.display_stop = 0.0;
         args.mode = RenderMode::Surfel;
         args.k = 0;
         assert!(run(&args).unwrap_err().to_string().contains("--k"));

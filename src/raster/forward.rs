@@ -888,7 +888,8 @@ struct PixelRun<W> {
 impl<W: Window> PixelRun<W> {
     /// Take the lowest hit of `mask` (non-zero) in the current group (candidate j0 + l) and
     /// clear its bit: when the window is full, blend its nearest entry first, or stop (clearing
-    /// the whole mask) if that blend would take T below the cut-off.
+    /// the whole mask) if that blend would take T below the cut-off, or right after it if it
+    /// took T below the display stop.
     #[inline(always)]
     fn take_next(
         &mut self,
@@ -896,7 +897,7 @@ impl<W: Window> PixelRun<W> {
         j0: usize,
         slots: &[u32],
         k: usize,
-        t_min: f32,
+        stop: Stop,
         blend: &mut impl FnMut(usize, f32, f32, f32),
     ) {
         let l = mask.trailing_zeros() as usize;
@@ -905,33 +906,61 @@ impl<W: Window> PixelRun<W> {
         if self.window.len() == k {
             let alpha = self.window.front_alpha();
             let next = self.t * (1.0 - alpha);
-            if next < t_min {
-                self.live = false;
-                self.evaluated = Evaluated { performed: (j0 + l) as u32 + 1, tile_list: slot + 1 };
-                *mask = 0;
+            if next < stop.before {
+                self.stop(mask, j0 + l, slot);
                 return;
             }
             blend(self.window.front_slot(), self.window.front_z(), alpha, self.t);
             self.t = next;
+            if next < stop.after {
+                self.stop(mask, j0 + l, slot);
+                return;
+            }
             self.window.replace_front(self.lanes.z[l], slot, self.lanes.alpha[l]);
         } else {
             self.window.insert(self.lanes.z[l], slot, self.lanes.alpha[l]);
         }
     }
 
+    /// Stop compositing at candidate j of the quarter list (slot in the tile list).
+    #[cold]
+    fn stop(&mut self, mask: &mut u32, j: usize, slot: u32) {
+        self.live = false;
+        self.evaluated = Evaluated { performed: j as u32 + 1, tile_list: slot + 1 };
+        *mask = 0;
+    }
+
     /// Blend what the window still holds, nearest first.
     #[inline(always)]
-    fn flush(&mut self, t_min: f32, blend: &mut impl FnMut(usize, f32, f32, f32)) {
+    fn flush(&mut self, stop: Stop, blend: &mut impl FnMut(usize, f32, f32, f32)) {
         while self.live && self.window.len() > 0 {
             let alpha = self.window.front_alpha();
             let next = self.t * (1.0 - alpha);
-            if next < t_min {
+            if next < stop.before {
                 break;
             }
             blend(self.window.front_slot(), self.window.front_z(), alpha, self.t);
             self.t = next;
+            if next < stop.after {
+                break;
+            }
             self.window.pop_front();
         }
+    }
+}
+
+/// When compositing stops: before a blend that would take T below `before`
+/// (`RasterSettings::transmittance_min`), or after one that took it below `after`
+/// (`RasterSettings::display_stop`, 0 = never).
+#[derive(Clone, Copy)]
+struct Stop {
+    before: f32,
+    after: f32,
+}
+
+impl Stop {
+    fn of(s: &RasterSettings) -> Stop {
+        Stop { before: s.transmittance_min, after: s.display_stop }
     }
 }
 
@@ -951,7 +980,7 @@ fn composite_with<W: Window>(
     mut blend0: impl FnMut(usize, f32, f32, f32),
     mut blend1: impl FnMut(usize, f32, f32, f32),
 ) -> [(f32, Evaluated); 2] {
-    let t_min = s.transmittance_min;
+    let stop = Stop::of(s);
     // The pixels' quarter of the tile (a pair never straddles two: pairs start at even x).
     let quarter = |q: (f32, f32)| {
         let right = q.0 - td.origin.0 as f32 >= QUARTER as f32;
@@ -972,16 +1001,16 @@ fn composite_with<W: Window>(
         // Alternate the two pixels' hits so their window chains interleave.
         while (ma | mb) != 0 {
             if ma != 0 {
-                a.take_next(&mut ma, j0, &list.slot, k, t_min, &mut blend0);
+                a.take_next(&mut ma, j0, &list.slot, k, stop, &mut blend0);
             }
             if mb != 0 {
-                b.take_next(&mut mb, j0, &list.slot, k, t_min, &mut blend1);
+                b.take_next(&mut mb, j0, &list.slot, k, stop, &mut blend1);
             }
         }
         j0 += 16;
     }
-    a.flush(t_min, &mut blend0);
-    b.flush(t_min, &mut blend1);
+    a.flush(stop, &mut blend0);
+    b.flush(stop, &mut blend1);
     [(a.t, a.evaluated), (b.t, b.evaluated)]
 }
 
@@ -996,7 +1025,7 @@ fn composite_one_with<W: Window>(
     k: usize,
     mut blend: impl FnMut(usize, f32, f32, f32),
 ) -> (f32, Evaluated) {
-    let t_min = s.transmittance_min;
+    let stop = Stop::of(s);
     let right = p.0 - td.origin.0 as f32 >= QUARTER as f32;
     let below = p.1 - td.origin.1 as f32 >= QUARTER as f32;
     let list = &td.quarters[right as usize + 2 * below as usize];
@@ -1006,11 +1035,11 @@ fn composite_one_with<W: Window>(
     while j0 < list.n && a.live {
         let mut ma = eval16(list, &td.records, j0, p.0, p.1, s, &mut a.lanes);
         while ma != 0 {
-            a.take_next(&mut ma, j0, &list.slot, k, t_min, &mut blend);
+            a.take_next(&mut ma, j0, &list.slot, k, stop, &mut blend);
         }
         j0 += 16;
     }
-    a.flush(t_min, &mut blend);
+    a.flush(stop, &mut blend);
     (a.t, a.evaluated)
 }
 

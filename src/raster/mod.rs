@@ -27,6 +27,9 @@ pub use forward::{HitRecorder, render, render_recorded};
 pub const TILE: u32 = 16;
 /// Largest per-pixel sorting window.
 pub const MAX_WINDOW: usize = 32;
+/// The display stop (`RasterSettings::display_stop`) of relit display frames: a pixel then
+/// misses at most 1/255 of the colour behind it, one level of an 8-bit display.
+pub const DISPLAY_STOP: f32 = 1.0 / 255.0;
 /// Largest number of feature channels.
 pub const MAX_FEATURES: usize = 16;
 
@@ -88,6 +91,11 @@ pub struct RasterSettings {
     pub alpha_min: f32,
     /// Compositing stops before a blend would take T below this (1e-4).
     pub transmittance_min: f32,
+    /// Compositing also stops right after a blend that took T below this (0 = never; off
+    /// for training and evaluation). For display frames: what the pixel then misses is at
+    /// most T times the colour behind it.
+    #[serde(default)]
+    pub display_stop: f32,
     /// The backward also sums AbsGS's statistic (`BackwardOutput::v_mean2d_abs`, else zeros):
     /// two more gradient columns per (tile, surfel) pair, so only when densification uses it.
     pub abs_centre_gradient: bool,
@@ -113,6 +121,7 @@ impl Default for RasterSettings {
             outputs: Outputs::default(),
             alpha_min: 1.0 / 255.0,
             transmittance_min: 1e-4,
+            display_stop: 0.0,
             abs_centre_gradient: false,
             filter_inv_square: filter_inv_square_2dgs(),
         }

@@ -265,6 +265,9 @@ pub fn render_ref(scene: &RefScene, cam: &Camera, set: &RasterSettings, order: O
                     median = Some(h.z);
                 }
                 t = next;
+                if next < set.display_stop as f64 {
+                    break;
+                }
             }
             if median.is_none() {
                 median = blended.last().map(|b| b.1);

@@ -451,6 +451,42 @@ fn gradients_with_hard_cutoffs_clamp_and_early_stop() {
     check_gradients(&s, &camera(24, 18), &set, 1, 4);
 }
 
+/// The display stop (compositing ends after the blend that takes T below it): the fast path
+/// matches the reference with the same rule at every K, the stop changes the image (so the test
+/// can fail), and each pixel differs from the exact render by at most the stop times the
+/// largest colour or background (what the pixel then misses), its alpha by at most the stop.
+#[test]
+fn display_stop_matches_the_reference_and_bounds_the_difference() {
+    let cam = camera(40, 30);
+    let s = random_scene(40, 27, (0.1, 0.4), (0.3, 0.99));
+    let bg = [0.2f32, 0.5, 0.9];
+    for k in [1usize, 3, 8, 32] {
+        for stop in [crate::raster::DISPLAY_STOP, 0.05] {
+            let exact = RasterSettings { window: k, two_sided: true, background: bg, ..Default::default() };
+            let display = RasterSettings { display_stop: stop, ..exact.clone() };
+            let d = compare(&s, &cam, &display, None, Order::Window(k));
+            assert!(d < 2e-4, "K = {k}, stop {stop}: max diff {d} against the reference");
+            for outputs in [Outputs::default(), Outputs::colour_only()] {
+                let (a, state) = render(&s, &cam, &RasterSettings { outputs, ..exact.clone() }, None);
+                let (b, _) = render(&s, &cam, &RasterSettings { outputs, ..display.clone() }, None);
+                // The largest colour a pixel can miss: a surfel's (SH, for this view) or the background.
+                let bound_colour = state.proj.colour.iter().flatten().chain(&bg).fold(0.0f32, |m, &c| m.max(c));
+                let mut changed = 0;
+                for i in 0..a.alpha.len() {
+                    let da = a.alpha[i] - b.alpha[i];
+                    assert!(da > -1e-6 && da <= stop + 1e-6, "K = {k}, stop {stop}, pixel {i}: alpha {da}");
+                    for c in 0..3 {
+                        let dc = (a.colour[i][c] - b.colour[i][c]).abs();
+                        assert!(dc <= stop * bound_colour + 1e-5, "K = {k}, stop {stop}, pixel {i}: colour {dc}");
+                    }
+                    changed += (a.colour[i] != b.colour[i]) as usize;
+                }
+                assert!(changed > 20, "K = {k}, stop {stop}: only {changed} pixels stopped early");
+            }
+        }
+    }
+}
+
 #[test]
 fn gradients_grazing_and_across_near_plane() {
     let cam = camera(24, 18);

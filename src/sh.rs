@@ -67,11 +67,17 @@ pub fn eval(coeffs: &[[f32; 3]; SH_COEFFS], degree: u32, dir: [f32; 3]) -> [f32;
     let d = normalize(dir);
     let b = basis(d);
     let mut c = [0.5f32; 3];
-    for k in 0..coeff_count(degree) {
-        for ch in 0..3 {
-            c[ch] += coeffs[k][ch] * b[k];
+    // Degree 3 (every trained scene) as a loop of fixed length, which compiles unrolled and
+    // without bounds checks; the same sums in the same order as the general loop.
+    let n = if degree >= 3 { SH_COEFFS } else { coeff_count(degree) };
+    let sum = |c: &mut [f32; 3], coeffs: &[[f32; 3]], b: &[f32]| {
+        for (ck, bk) in coeffs.iter().zip(b) {
+            for ch in 0..3 {
+                c[ch] += ck[ch] * bk;
+            }
         }
-    }
+    };
+    if n == SH_COEFFS { sum(&mut c, coeffs, &b) } else { sum(&mut c, &coeffs[..n], &b[..n]) }
     [c[0].max(0.0), c[1].max(0.0), c[2].max(0.0)]
 }
 

@@ -1502,13 +1502,24 @@ fn render_tile_row(
     for tx in 0..bins.tiles_x {
         let t = (ty * bins.tiles_x + tx) as usize;
         let range = bins.offsets[t] as usize..bins.offsets[t + 1] as usize;
+        let x0 = tx * TILE;
+        let x1 = (x0 + TILE).min(w);
+        // A tile without candidates is background (every other output starts at zero): what
+        // the compositor would write for each pixel, without a pass through it per pixel.
+        if range.is_empty() && record.is_none() {
+            if let Some(colour) = out.colour.as_deref_mut() {
+                for y in y0..y1 {
+                    let row = ((y - y0) * w) as usize;
+                    colour[row + x0 as usize..row + x1 as usize].fill(s.background);
+                }
+            }
+            continue;
+        }
         td.load(proj, &bins.ids[range.clone()], &bins.quarter_masks[range], (tx * TILE, ty * TILE));
         match rows {
             (_, Some(rows8)) if narrow => td.load_blend_rows8(rows8),
             (rows16, _) => td.load_blend_rows(rows16),
         }
-        let x0 = tx * TILE;
-        let x1 = (x0 + TILE).min(w);
         for y in y0..y1 {
             // Pixels in pairs (see `composite_two_pixels`); a lone last one when x1 − x0 is odd.
             for x in (x0..x1).step_by(2) {

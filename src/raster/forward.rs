@@ -10,7 +10,9 @@
 //! window of K entries sorted by z. When a hit arrives and the window is full, the window's
 //! nearest entry is blended first; at the end the window is flushed nearest-first. K = 1 is
 //! exactly the plain 2DGS order. Blending: w = α T, T ← T(1 − α), stopping before a blend
-//! that would take T below `transmittance_min` (that hit is not blended).
+//! that would take T below `transmittance_min` (that hit is not blended), and, for display
+//! frames, right after a blend that took T below `display_stop` (off by default: the pixel
+//! then misses at most that T times the colour behind it).
 //!
 //! Outputs: colour Σ w c + T·bg, alpha Σ w (= 1 − T, summed to avoid cancellation), depth Σ w z / α, median depth (z of the last
 //! blend made while T > 0.5), normal Σ w n, distortion Σ_{i<j} w_i w_j (m_i − m_j)² (2DGS) in

@@ -77,7 +77,11 @@ pub fn eval(coeffs: &[[f32; 3]; SH_COEFFS], degree: u32, dir: [f32; 3]) -> [f32;
             }
         }
     };
-    if n == SH_COEFFS { sum(&mut c, coeffs, &b) } else { sum(&mut c, &coeffs[..n], &b[..n]) }
+    if n == SH_COEFFS {
+        sum(&mut c, coeffs, &b)
+    } else {
+        sum(&mut c, &coeffs[..n], &b[..n])
+    }
     [c[0].max(0.0), c[1].max(0.0), c[2].max(0.0)]
 }
 

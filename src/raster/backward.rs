@@ -24,7 +24,7 @@ use super::forward::{
 };
 use super::lanes;
 use super::project::{ProjGrad, SurfelGradSlots, project_backward_one};
-use super::tiles::split_by_offsets;
+use super::tiles::{self, split_by_offsets};
 use super::{BackwardOutput, Features, ForwardState, MAX_FEATURES, NOT_RECORDED, RasterSettings, RenderGrads, TILE};
 use crate::camera::Camera;
 use crate::surfels::{SurfelGrads, Surfels};
@@ -78,10 +78,14 @@ pub fn render_backward(
     if state.width > 0 && state.height > 0 {
         let row_offsets: Vec<u32> =
             (0..=bins.tiles_y).map(|ty| bins.offsets[(ty * bins.tiles_x) as usize] * stride as u32).collect();
-        split_by_offsets(&mut rows, &row_offsets).into_par_iter().enumerate().for_each_init(
+        // Largest rows first (see `rows_largest_first`); nothing to count.
+        tiles::rows_largest_first(
+            split_by_offsets(&mut rows, &row_offsets),
+            &bins.row_pairs(),
             || (TileData::default(), [PixelHits::default(), PixelHits::default()]),
-            |(td, hits), (ty, chunk)| {
-                backward_tile_row(state, camera, settings, features, grads, ty as u32, chunk, stride, td, hits)
+            |(td, hits), ty, chunk| {
+                backward_tile_row(state, camera, settings, features, grads, ty as u32, chunk, stride, td, hits);
+                (0, 0)
             },
         );
     }

@@ -1302,23 +1302,20 @@ fn render_impl(
         let render_row = |td: &mut TileData, ty: usize, row_out: &mut RowOutputs, rec: Option<RowRecord>| {
             render_tile_row(&proj, &bins, camera, settings, features, ty as u32, row_out, td, row_sets, rec)
         };
-        // A row's (tile, surfel) pairs: what its compositing costs, roughly.
-        let row_pairs: Vec<u32> = (0..bins.tiles_y)
-            .map(|ty| bins.offsets[((ty + 1) * bins.tiles_x) as usize] - bins.offsets[(ty * bins.tiles_x) as usize])
-            .collect();
+        let row_pairs = bins.row_pairs();
         match record.as_mut() {
             Some(rec) => {
                 rec.rows.resize_with(bins.tiles_y as usize, RowHits::default);
                 let cap = budget_bytes / std::mem::size_of::<RecordedHit>() / bins.tiles_y.max(1) as usize;
                 let rows: Vec<_> = row_outputs.into_iter().zip(rec.rows.iter_mut()).collect();
-                rows_largest_first(
+                tiles::rows_largest_first(
                     rows,
                     &row_pairs,
                     || (TileData::default(), Vec::new()),
                     |(td, pending), ty, (mut row_out, row)| render_row(td, ty, &mut row_out, Some((row, pending, cap))),
                 )
             }
-            None => rows_largest_first(row_outputs, &row_pairs, TileData::default, |td, ty, mut row_out| {
+            None => tiles::rows_largest_first(row_outputs, &row_pairs, TileData::default, |td, ty, mut row_out| {
                 render_row(td, ty, &mut row_out, None)
             }),
         }
@@ -1359,43 +1356,6 @@ impl RenderOutput {
             features: vec![0.0; px * nch],
         }
     }
-}
-
-/// `f(state, row, item)` for every row of tiles, largest first by `cost`: one job per thread,
-/// each taking the next row from a shared counter (with its own `init()` state), so that the
-/// rows left at the end are the cheap ones. Rayon's halving split over rows in image order left
-/// one thread idle for up to a whole row at the end (relit spheres frame at 400²: ≈ 3 ms of a
-/// 50 ms tile loop). Each row's outputs do not depend on the order. Returns the sums of the
-/// rows' evaluation counts.
-fn rows_largest_first<T: Send, S>(
-    items: Vec<T>,
-    cost: &[u32],
-    init: impl Fn() -> S + Sync,
-    f: impl Fn(&mut S, usize, T) -> (u64, u64) + Sync,
-) -> (u64, u64) {
-    use std::sync::Mutex;
-    use std::sync::atomic::{AtomicUsize, Ordering};
-    let mut order: Vec<usize> = (0..items.len()).collect();
-    order.sort_by_key(|&r| (std::cmp::Reverse(cost.get(r).copied().unwrap_or(0)), r));
-    let slots: Vec<Mutex<Option<T>>> = items.into_iter().map(|item| Mutex::new(Some(item))).collect();
-    let next = AtomicUsize::new(0);
-    let jobs = rayon::current_num_threads().min(order.len()).max(1);
-    (0..jobs)
-        .into_par_iter()
-        .map(|_| {
-            let mut state = init();
-            let mut sums = (0u64, 0u64);
-            while let Some(&row) = order.get(next.fetch_add(1, Ordering::Relaxed)) {
-                // Each row is claimed once (the counter), so its lock is never contended.
-                let item = slots[row].lock().unwrap_or_else(|e| e.into_inner()).take();
-                if let Some(item) = item {
-                    let r = f(&mut state, row, item);
-                    sums = (sums.0 + r.0, sums.1 + r.1);
-                }
-            }
-            sums
-        })
-        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
 }
 
 /// One row of tiles' slices of the render's outputs (None: not requested), pixel-major

@@ -41,6 +41,15 @@ pub struct TileBins {
     pub sorted_of_gen: Vec<u32>,
 }
 
+impl TileBins {
+    /// Each row of tiles' (tile, surfel) pairs: roughly what compositing it costs.
+    pub(crate) fn row_pairs(&self) -> Vec<u32> {
+        (0..self.tiles_y)
+            .map(|ty| self.offsets[((ty + 1) * self.tiles_x) as usize] - self.offsets[(ty * self.tiles_x) as usize])
+            .collect()
+    }
+}
+
 /// A slice of u32 viewed as atomics for the time of its exclusive borrow (what the unstable
 /// `AtomicU32::from_mut_slice` does): lets threads store to disjoint but interleaved entries.
 fn as_atomic(v: &mut [u32]) -> &[AtomicU32] {
@@ -200,6 +209,43 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
     });
     drop(pair_tiles);
     TileBins { tiles_x, tiles_y, offsets, ids, quarter_masks, pair_offsets, sorted_of_gen }
+}
+
+/// `f(state, row, item)` for every row of tiles, largest first by `cost`: one job per thread,
+/// each taking the next row from a shared counter (with its own `init()` state), so that the
+/// rows left at the end are the cheap ones. Rayon's halving split over rows in image order left
+/// one thread idle for up to a whole row at the end (relit spheres frame at 400²: ≈ 3 ms of a
+/// 50 ms tile loop). The forward and the backward both run their rows this way. Each row's outputs do not depend on the order. Returns the sums of the
+/// rows' evaluation counts.
+pub(crate) fn rows_largest_first<T: Send, S>(
+    items: Vec<T>,
+    cost: &[u32],
+    init: impl Fn() -> S + Sync,
+    f: impl Fn(&mut S, usize, T) -> (u64, u64) + Sync,
+) -> (u64, u64) {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let mut order: Vec<usize> = (0..items.len()).collect();
+    order.sort_by_key(|&r| (std::cmp::Reverse(cost.get(r).copied().unwrap_or(0)), r));
+    let slots: Vec<Mutex<Option<T>>> = items.into_iter().map(|item| Mutex::new(Some(item))).collect();
+    let next = AtomicUsize::new(0);
+    let jobs = rayon::current_num_threads().min(order.len()).max(1);
+    (0..jobs)
+        .into_par_iter()
+        .map(|_| {
+            let mut state = init();
+            let mut sums = (0u64, 0u64);
+            while let Some(&row) = order.get(next.fetch_add(1, Ordering::Relaxed)) {
+                // Each row is claimed once (the counter), so its lock is never contended.
+                let item = slots[row].lock().unwrap_or_else(|e| e.into_inner()).take();
+                if let Some(item) = item {
+                    let r = f(&mut state, row, item);
+                    sums = (sums.0 + r.0, sums.1 + r.1);
+                }
+            }
+            sums
+        })
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
 }
 
 /// The surfels `ids` (ascending) ordered by (depth, index): a stable least-significant-digit

@@ -39,19 +39,15 @@ struct FrameDifference {
 }
 
 fn frame_difference(exact: &[[f32; 3]], shown: &[[f32; 3]]) -> FrameDifference {
-    let (mut max_levels, mut over_one, mut sq) = (0.0f32, 0usize, 0.0f64);
-    for (a, b) in exact.iter().zip(shown) {
-        let mut px = 0.0f32;
-        for c in 0..3 {
-            let d = (a[c].clamp(0.0, 1.0) - b[c].clamp(0.0, 1.0)).abs();
-            px = px.max(d * 255.0);
-            sq += (d as f64).powi(2);
-        }
+    let clip = |v: &[[f32; 3]]| -> Vec<[f32; 3]> { v.iter().map(|c| c.map(|x| x.clamp(0.0, 1.0))).collect() };
+    let (exact, shown) = (clip(exact), clip(shown));
+    let (mut max_levels, mut over_one) = (0.0f32, 0usize);
+    for (a, b) in exact.iter().zip(&shown) {
+        let px = (0..3).map(|c| (a[c] - b[c]).abs() * 255.0).fold(0.0f32, f32::max);
         max_levels = max_levels.max(px);
         over_one += (px > 1.0) as usize;
     }
-    let mse = sq / (3 * exact.len().max(1)) as f64;
-    FrameDifference { max_levels, over_one, psnr: if mse > 0.0 { -10.0 * mse.log10() } else { f64::INFINITY } }
+    FrameDifference { max_levels, over_one, psnr: crate::loss::ssim::psnr(&shown, &exact) as f64 }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {

@@ -487,6 +487,20 @@ fn display_stop_matches_the_reference_and_bounds_the_difference() {
     }
 }
 
+/// The backward re-runs each pixel's compositing with the same settings, so a display stop
+/// (never set by training) also gives the gradient of what the forward drew.
+#[test]
+fn gradients_with_a_display_stop() {
+    let s = random_scene(10, 26, (0.15, 0.4), (0.4, 0.95));
+    let set = RasterSettings { display_stop: 0.2, ..smooth(8, true) };
+    let cam = camera(24, 18);
+    let stopped = render(&s, &cam, &set, None).0;
+    let exact = render(&s, &cam, &RasterSettings { display_stop: 0.0, ..set.clone() }, None).0;
+    let changed = (0..stopped.alpha.len()).filter(|&i| stopped.alpha[i] != exact.alpha[i]).count();
+    assert!(changed > 10, "the stop ends only {changed} pixels early");
+    check_gradients_with(&s, &cam, &set, 1, 6, true);
+}
+
 #[test]
 fn gradients_grazing_and_across_near_plane() {
     let cam = camera(24, 18);

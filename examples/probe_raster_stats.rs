@@ -115,7 +115,7 @@ fn quarter_culling(p: &raster::project::Projected, bins: &raster::tiles::TileBin
                     for y in y0..=y1 {
                         for x in x0..=x1 {
                             hits +=
-                                (rho(p, i, x as f32 + 0.5, y as f32 + 0.5, filter_inv_square) <= p.rho_max[i]) as u64;
+                                (rho(p, i, x as f32 + 0.5, y as f32 + 0.5, filter_inv_square) <= p.rho_max(i)) as u64;
                         }
                     }
                     reached += (hits > 0) as u64;
@@ -134,11 +134,11 @@ fn quarter_culling(p: &raster::project::Projected, bins: &raster::tiles::TileBin
 
 /// ρ = min(ρ₃, ρ₂) at pixel centre (x, y), as the compositor computes it (f32).
 fn rho(p: &raster::project::Projected, i: usize, x: f32, y: f32, filter_inv_square: f32) -> f32 {
-    let (tu, tv, tw) = (p.tu[i], p.tv[i], p.tw[i]);
+    let (tu, tv, tw) = (p.tu(i), p.tv(i), p.tw(i));
     let k = [x * tw[0] - tu[0], x * tw[1] - tu[1], x * tw[2] - tu[2]];
     let l = [y * tw[0] - tv[0], y * tw[1] - tv[1], y * tw[2] - tv[2]];
     let h = [k[1] * l[2] - k[2] * l[1], k[2] * l[0] - k[0] * l[2], k[0] * l[1] - k[1] * l[0]];
     let (u, v) = (h[0] / h[2], h[1] / h[2]);
-    let (dx, dy) = (p.mean2d[i][0] - x, p.mean2d[i][1] - y);
+    let (dx, dy) = (p.mean2d(i)[0] - x, p.mean2d(i)[1] - y);
     (u * u + v * v).min(filter_inv_square * (dx * dx + dy * dy))
 }

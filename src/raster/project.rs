@@ -26,12 +26,8 @@ use rayon::prelude::*;
 /// Projected surfels, structure of arrays (index = surfel index).
 #[derive(Clone, Debug, Default)]
 pub struct Projected {
-    pub tu: Vec<[f32; 3]>,
-    pub tv: Vec<[f32; 3]>,
-    pub tw: Vec<[f32; 3]>,
-    pub mean2d: Vec<[f32; 2]>,
-    pub opacity: Vec<f32>,
-    /// SH colour at the direction camera → centre (empty if colour is off).
+    /// SH colour at the direction camera → centre (empty if colour is off; zero for surfels
+    /// that are not drawn).
     pub colour: Vec<[f32; 3]>,
     /// World normal, flipped to face the camera in two-sided mode.
     pub normal: Vec<[f32; 3]>,
@@ -47,12 +43,42 @@ pub struct Projected {
     /// grown by half a pixel (and 10⁻³ of its size) against rounding; [1, 1, 0, 0] when culled.
     /// A tile quarter lists only the candidates whose box reaches it (`forward::TileData`).
     pub pixels: Vec<[u32; 4]>,
-    /// Conservative ρ cut-off: 2 ln(o/α_min) plus a margin for rounding (∞ when α_min ≤ 0).
-    /// ρ above it cannot give α ≥ α_min (see `forward::Candidates`).
-    pub rho_max: Vec<f32>,
     /// What the compositor evaluates per candidate, one cache line per surfel (lanes `PK_*`
     /// of `forward`: T_u, T_v, T_w, μ₂D, opacity, ρ cut-off, the pixel box's x and y ranges).
+    /// The only copy of those fields: read them through the accessors below.
     pub packed: Vec<[f32; 16]>,
+}
+
+impl Projected {
+    fn lanes3(&self, i: usize, at: usize) -> [f32; 3] {
+        let r = &self.packed[i];
+        [r[at], r[at + 1], r[at + 2]]
+    }
+    /// Row T_u of M (zero when culled).
+    pub fn tu(&self, i: usize) -> [f32; 3] {
+        self.lanes3(i, 0)
+    }
+    /// Row T_v of M.
+    pub fn tv(&self, i: usize) -> [f32; 3] {
+        self.lanes3(i, 3)
+    }
+    /// Row T_w of M (T_w · (u, v, 1) is the camera depth).
+    pub fn tw(&self, i: usize) -> [f32; 3] {
+        self.lanes3(i, 6)
+    }
+    /// Projected centre μ₂D in pixels.
+    pub fn mean2d(&self, i: usize) -> [f32; 2] {
+        [self.packed[i][9], self.packed[i][10]]
+    }
+    /// Opacity (0 when culled).
+    pub fn opacity(&self, i: usize) -> f32 {
+        self.packed[i][11]
+    }
+    /// Conservative ρ cut-off: 2 ln(o/α_min) plus a margin for rounding (∞ when α_min ≤ 0,
+    /// −∞ when culled). ρ above it cannot give α ≥ α_min (see `forward::Candidates`).
+    pub fn rho_max(&self, i: usize) -> f32 {
+        self.packed[i][12]
+    }
 }
 
 struct One {
@@ -193,56 +219,67 @@ fn pack(o: &One) -> [f32; 16] {
 /// Project every surfel (rayon over surfels).
 pub fn project(surfels: &Surfels, camera: &Camera, settings: &RasterSettings) -> Projected {
     let campos = camera.position();
-    let colour = settings.outputs.colour;
+    let colour_on = settings.outputs.colour;
     let n = surfels.len();
-    let mut p = Projected {
-        tu: vec![[0.0; 3]; n],
-        tv: vec![[0.0; 3]; n],
-        tw: vec![[0.0; 3]; n],
-        mean2d: vec![[0.0; 2]; n],
-        opacity: vec![0.0; n],
-        colour: vec![[0.0; 3]; if colour { n } else { 0 }],
-        normal: vec![[0.0; 3]; n],
-        sign: vec![0.0; n],
-        rect: vec![CULLED; n],
-        depth: vec![0.0; n],
-        radius: vec![0.0; n],
-        pixels: vec![CULLED; n],
-        rho_max: vec![0.0; n],
-        packed: vec![[0.0; 16]; n],
-    };
-    // Each surfel's fields written in place, in parallel (no per-surfel intermediate).
-    let geometry = (p.tu.par_iter_mut(), p.tv.par_iter_mut(), p.tw.par_iter_mut(), p.mean2d.par_iter_mut());
-    let scalars = (p.opacity.par_iter_mut(), p.sign.par_iter_mut(), p.depth.par_iter_mut(), p.radius.par_iter_mut());
-    let rest = (p.normal.par_iter_mut(), p.rect.par_iter_mut(), p.pixels.par_iter_mut(), p.rho_max.par_iter_mut());
-    geometry
-        .into_par_iter()
-        .zip(scalars.into_par_iter())
-        .zip(rest.into_par_iter())
-        .zip(p.packed.par_iter_mut())
-        .enumerate()
-        .for_each(
-            |(
-                i,
-                ((((tu, tv, tw, mean2d), (opacity, sign, depth, radius)), (normal, rect, pixels, rho_max)), packed),
-            )| {
-                let o = project_one(surfels, i, camera, campos, settings);
-                (*tu, *tv, *tw, *mean2d) = (o.tu, o.tv, o.tw, o.mean2d);
-                (*opacity, *sign, *depth, *radius) = (o.opacity, o.sign, o.depth, o.radius);
-                (*normal, *rect, *pixels, *rho_max) = (o.normal, o.rect, o.pixels, o.rho_max);
-                *packed = pack(&o);
-            },
-        );
-    if colour {
-        // SH colour (at the direction camera → centre) only for surfels that are drawn.
-        p.colour.par_iter_mut().enumerate().for_each(|(i, c)| {
-            if p.radius[i] > 0.0 {
-                let dir = Vec3::from(surfels.means[i]) - campos;
-                *c = sh::eval(&surfels.sh[i], surfels.sh_degree, dir.to_array());
-            }
+    // Every slot is written below (each surfel's own), so the arrays start uninitialised: a
+    // relit frame at 51k surfels zeroed ~8 MB per frame only to overwrite it.
+    let mut colour = uninit_vec(if colour_on { n } else { 0 });
+    let mut normal = uninit_vec(n);
+    let mut sign = uninit_vec(n);
+    let mut rect = uninit_vec(n);
+    let mut depth = uninit_vec(n);
+    let mut radius = uninit_vec(n);
+    let mut pixels = uninit_vec(n);
+    let mut packed = uninit_vec(n);
+    let outputs = (normal.par_iter_mut(), sign.par_iter_mut(), rect.par_iter_mut(), depth.par_iter_mut());
+    let more = (radius.par_iter_mut(), pixels.par_iter_mut(), packed.par_iter_mut());
+    outputs.into_par_iter().zip(more.into_par_iter()).enumerate().for_each(
+        |(i, ((normal, sign, rect, depth), (radius, pixels, packed)))| {
+            let o = project_one(surfels, i, camera, campos, settings);
+            normal.write(o.normal);
+            sign.write(o.sign);
+            rect.write(o.rect);
+            depth.write(o.depth);
+            radius.write(o.radius);
+            pixels.write(o.pixels);
+            packed.write(pack(&o));
+        },
+    );
+    // SAFETY: the loop above wrote every slot of these (one per surfel index).
+    let (normal, sign, rect, depth) =
+        unsafe { (assume_init(normal), assume_init(sign), assume_init(rect), assume_init(depth)) };
+    // SAFETY: as above.
+    let (radius, pixels, packed) = unsafe { (assume_init(radius), assume_init(pixels), assume_init(packed)) };
+    // SH colour (at the direction camera → centre) only for surfels that are drawn.
+    colour.par_iter_mut().enumerate().for_each(|(i, c)| {
+        c.write(if radius[i] > 0.0 {
+            let dir = Vec3::from(surfels.means[i]) - campos;
+            sh::eval(&surfels.sh[i], surfels.sh_degree, dir.to_array())
+        } else {
+            [0.0; 3]
         });
-    }
-    p
+    });
+    // SAFETY: every slot written just above.
+    let colour = unsafe { assume_init(colour) };
+    Projected { colour, normal, sign, rect, depth, radius, pixels, packed }
+}
+
+/// `n` slots to be written before [`assume_init`] (no zeroing pass).
+fn uninit_vec<T>(n: usize) -> Vec<std::mem::MaybeUninit<T>> {
+    let mut v = Vec::with_capacity(n);
+    v.resize_with(n, std::mem::MaybeUninit::uninit);
+    v
+}
+
+/// The vector of written slots.
+///
+/// # Safety
+/// Every slot of `v` must have been written.
+unsafe fn assume_init<T>(v: Vec<std::mem::MaybeUninit<T>>) -> Vec<T> {
+    let mut v = std::mem::ManuallyDrop::new(v);
+    // SAFETY: MaybeUninit<T> has T's layout; the caller guarantees every slot is initialised;
+    // pointer, length and capacity come from a live Vec that is not dropped.
+    unsafe { Vec::from_raw_parts(v.as_mut_ptr() as *mut T, v.len(), v.capacity()) }
 }
 
 /// Per-surfel gradients of the projected quantities (summed over pixels).
@@ -271,7 +308,7 @@ pub fn project_backward_one(
     let mut v_tu = Vec3::from(g.v_tu);
     let mut v_tv = Vec3::from(g.v_tv);
     let mut v_tw = Vec3::from(g.v_tw);
-    let (tu, tv, tw) = (p.tu[i], p.tv[i], p.tw[i]);
+    let (tu, tv, tw) = (p.tu(i), p.tv(i), p.tw(i));
     // μ₂D = (Tu.z / Tw.z, Tv.z / Tw.z).
     let iz = 1.0 / tw[2];
     v_tu.z += g.v_mean2d[0] * iz;
@@ -299,7 +336,7 @@ pub fn project_backward_one(
     for k in 0..4 {
         v.quats[k] += v_q[k];
     }
-    let o = p.opacity[i];
+    let o = p.opacity(i);
     *v.opacity_logit += o * (1.0 - o) * g.v_opacity;
     if !p.colour.is_empty() && g.v_colour != [0.0; 3] {
         let dir = Vec3::from(s.means[i]) - campos;

@@ -82,56 +82,65 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
     // test is f64 work); chunks are joined in surfel order, so the result does not depend on
     // the thread count.
     let chunk = n.div_ceil(4 * rayon::current_num_threads()).max(2048);
-    let parts: Vec<(Vec<u32>, Vec<u8>, Vec<u32>)> = (0..n.div_ceil(chunk))
-        .into_par_iter()
-        .map(|c| {
-            let range = c * chunk..((c + 1) * chunk).min(n);
-            let mut tiles_of: Vec<u32> = Vec::with_capacity(range.len() * 4);
-            let mut masks_of: Vec<u8> = Vec::with_capacity(range.len() * 4);
-            let mut ends: Vec<u32> = Vec::with_capacity(range.len());
-            for i in range {
-                let r = p.rect[i];
-                if r[0] <= r[2] && r[1] <= r[3] {
-                    // A one-row or one-column rectangle almost never loses a tile (the footprint
-                    // is connected and spans its box): skip the test there, it costs more than
-                    // it saves on the many small surfels of training (rand 10k: +0.06 %
-                    // evaluations). Its quarters are then left to the pixel box
-                    // (`TileData::load`).
-                    let footprint = if r[2] > r[0] && r[3] > r[1] {
-                        Footprint::new(p, i, alpha_min, filter_inv_square)
-                    } else {
-                        None
-                    };
-                    for ty in r[1]..=r[3] {
-                        let Some(f) = footprint.as_ref() else {
-                            tiles_of.extend((r[0]..=r[2]).map(|tx| ty * tiles_x + tx));
-                            masks_of.extend((r[0]..=r[2]).map(|_| 0b1111u8));
-                            continue;
+    let footprints = || -> Vec<(Vec<u32>, Vec<u8>, Vec<u32>)> {
+        (0..n.div_ceil(chunk))
+            .into_par_iter()
+            .map(|c| {
+                let range = c * chunk..((c + 1) * chunk).min(n);
+                let mut tiles_of: Vec<u32> = Vec::with_capacity(range.len() * 4);
+                let mut masks_of: Vec<u8> = Vec::with_capacity(range.len() * 4);
+                let mut ends: Vec<u32> = Vec::with_capacity(range.len());
+                for i in range {
+                    let r = p.rect[i];
+                    if r[0] <= r[2] && r[1] <= r[3] {
+                        // A one-row or one-column rectangle almost never loses a tile (the footprint
+                        // is connected and spans its box): skip the test there, it costs more than
+                        // it saves on the many small surfels of training (rand 10k: +0.06 %
+                        // evaluations). Its quarters are then left to the pixel box
+                        // (`TileData::load`).
+                        let footprint = if r[2] > r[0] && r[3] > r[1] {
+                            Footprint::new(p, i, alpha_min, filter_inv_square)
+                        } else {
+                            None
                         };
-                        // Per half row of tiles (a band of quarters) the footprint covers one
-                        // or two runs of quarter columns; a tile joins when a quarter does.
-                        let q = QUARTER as f64;
-                        let band0 = (2 * ty) as f64 * q;
-                        let runs = [f.runs(band0, band0 + q, q), f.runs(band0 + q, band0 + 2.0 * q, q)];
-                        let touches = |band: usize, col: u32| runs[band].iter().any(|&(a, b)| a <= col && col <= b);
-                        for tx in r[0]..=r[2] {
-                            let (left, right) = (2 * tx, 2 * tx + 1);
-                            let mask = touches(0, left) as u8
-                                | (touches(0, right) as u8) << 1
-                                | (touches(1, left) as u8) << 2
-                                | (touches(1, right) as u8) << 3;
-                            if mask != 0 {
-                                tiles_of.push(ty * tiles_x + tx);
-                                masks_of.push(mask);
+                        for ty in r[1]..=r[3] {
+                            let Some(f) = footprint.as_ref() else {
+                                tiles_of.extend((r[0]..=r[2]).map(|tx| ty * tiles_x + tx));
+                                masks_of.extend((r[0]..=r[2]).map(|_| 0b1111u8));
+                                continue;
+                            };
+                            // Per half row of tiles (a band of quarters) the footprint covers one
+                            // or two runs of quarter columns; a tile joins when a quarter does.
+                            let q = QUARTER as f64;
+                            let band0 = (2 * ty) as f64 * q;
+                            let runs = [f.runs(band0, band0 + q, q), f.runs(band0 + q, band0 + 2.0 * q, q)];
+                            let touches = |band: usize, col: u32| runs[band].iter().any(|&(a, b)| a <= col && col <= b);
+                            for tx in r[0]..=r[2] {
+                                let (left, right) = (2 * tx, 2 * tx + 1);
+                                let mask = touches(0, left) as u8
+                                    | (touches(0, right) as u8) << 1
+                                    | (touches(1, left) as u8) << 2
+                                    | (touches(1, right) as u8) << 3;
+                                if mask != 0 {
+                                    tiles_of.push(ty * tiles_x + tx);
+                                    masks_of.push(mask);
+                                }
                             }
                         }
                     }
+                    ends.push(tiles_of.len() as u32);
                 }
-                ends.push(tiles_of.len() as u32);
-            }
-            (tiles_of, masks_of, ends)
-        })
-        .collect();
+                (tiles_of, masks_of, ends)
+            })
+            .collect()
+    };
+    // Surfels with a tile rectangle by (depth, index), sorted beside the footprint pass (the
+    // sort is serial); those whose footprint then misses every tile are dropped below.
+    let has_rect = |i: u32| {
+        let r = p.rect[i as usize];
+        r[0] <= r[2] && r[1] <= r[3]
+    };
+    let (parts, rect_order) = rayon::join(footprints, || depth_order(&p.depth, (0..n as u32).filter(|&i| has_rect(i))));
     let mut pair_offsets = Vec::with_capacity(n + 1);
     pair_offsets.push(0u32);
     let total: usize = parts.iter().map(|(t, _, _)| t.len()).sum();
@@ -155,8 +164,8 @@ pub fn bin(p: &Projected, width: u32, height: u32, alpha_min: f32, filter_inv_sq
     // Surfels by (depth, index), then their pairs scattered in that order: every tile's list
     // comes out sorted by centre depth (ties by index) without a per-tile sort, and a pair's
     // generation number g is at hand when its position is chosen (`sorted_of_gen`).
-    let order =
-        depth_order(&p.depth, (0..n as u32).filter(|&i| pair_offsets[i as usize] < pair_offsets[i as usize + 1]));
+    let mut order = rect_order;
+    order.retain(|&i| pair_offsets[i as usize] < pair_offsets[i as usize + 1]);
     // The scatter in parallel over bands of tiles (each about an equal share of the pairs): a
     // band walks every surfel in depth order and places the pairs that fall in its tiles, so its
     // stretch of `ids` is its own. `sorted_of_gen` is indexed by pair, and a surfel's pairs can
@@ -330,13 +339,13 @@ struct EllipseShape {
 
 impl Footprint {
     fn new(p: &Projected, i: usize, alpha_min: f32, filter_inv_square: f32) -> Option<Footprint> {
-        let o = p.opacity[i] as f64;
+        let o = p.opacity(i) as f64;
         if !(alpha_min > 0.0) || !(o > 0.0) {
             return None;
         }
         let r2 = 2.0 * (o / alpha_min as f64).ln() * 1.01 + 1e-6;
         let v = |a: [f32; 3]| a.map(|x| x as f64);
-        let (tu, tv, tw) = (v(p.tu[i]), v(p.tv[i]), v(p.tw[i]));
+        let (tu, tv, tw) = (v(p.tu(i)), v(p.tv(i)), v(p.tw(i)));
         let cross = |a: [f64; 3], b: [f64; 3]| {
             [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
         };
@@ -354,7 +363,7 @@ impl Footprint {
             lx,
             ly,
             c: cc,
-            mean: [p.mean2d[i][0] as f64, p.mean2d[i][1] as f64],
+            mean: p.mean2d(i).map(|x| x as f64),
             circle_r2: r2 / filter_inv_square as f64,
             ellipse: EllipseShape::default(),
         };

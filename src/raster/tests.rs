@@ -779,6 +779,47 @@ fn tile_culling_drops_only_pairs_without_hits() {
     assert!(dropped_total > 1000, "the cull dropped only {dropped_total} pairs");
 }
 
+/// The bin sorts every surfel with a tile rectangle by depth beside the footprint pass and then
+/// drops those whose footprint missed every tile. Here surfel 0's rectangle is moved to tiles
+/// its ellipse cannot reach: it must vanish from every list (no pair, no span), and every other
+/// list must be exactly what it was. (Surfel 0 has the first generation range, so a span read
+/// for it without pairs would index before the first pair.)
+#[test]
+fn a_rectangle_whose_footprint_misses_every_tile_leaves_no_pair() {
+    let camera = camera(96, 80);
+    let settings = RasterSettings { two_sided: true, ..RasterSettings::default() };
+    // A scene whose surfel 0 is drawn, small and covers at least one tile.
+    let (_, mut proj) = (31..200)
+        .map(|seed| {
+            let scene = random_scene(60, seed, (0.03, 0.12), (0.3, 0.99));
+            let proj = super::project::project(&scene, &camera, &settings);
+            (scene, proj)
+        })
+        .find(|(_, p)| p.radius[0] > 1.0 && p.radius[0] < 20.0)
+        .expect("a scene with surfel 0 drawn");
+    let bin = |p: &super::project::Projected| {
+        super::tiles::bin(p, camera.width, camera.height, settings.alpha_min, settings.filter_inv_square)
+    };
+    let before = bin(&proj);
+    let m = proj.mean2d(0);
+    let (tiles_x, tiles_y) = (before.tiles_x, before.tiles_y);
+    // A 2 × 2 block of tiles in the corner farthest from the centre (its box is ≥ 2 × 2, so
+    // the footprint test runs; the ellipse is small against the image).
+    let far_x = if m[0] < (camera.width / 2) as f32 { tiles_x - 2 } else { 0 };
+    let far_y = if m[1] < (camera.height / 2) as f32 { tiles_y - 2 } else { 0 };
+    proj.rect[0] = [far_x, far_y, far_x + 1, far_y + 1];
+    let after = bin(&proj);
+    assert_eq!(after.pair_offsets[1], 0, "the moved surfel kept a pair");
+    let mut removed = 0;
+    for t in 0..(tiles_x * tiles_y) as usize {
+        let was: Vec<u32> = before.ids[before.offsets[t] as usize..before.offsets[t + 1] as usize].to_vec();
+        removed += was.iter().filter(|&&i| i == 0).count();
+        let expect: Vec<u32> = was.into_iter().filter(|&i| i != 0).collect();
+        assert_eq!(&after.ids[after.offsets[t] as usize..after.offsets[t + 1] as usize], &expect[..], "tile {t}");
+    }
+    assert!(removed > 0, "surfel 0 had no pair before the move");
+}
+
 /// A pixel evaluates only its tile quarter's candidates (`TileData::quarters`): every candidate
 /// left out of a quarter has α < α_min at every pixel centre of it (by the f64 world-space
 /// evaluation), the quarters keep the tile's order, and on small surfels they drop most of the

@@ -31,7 +31,9 @@
 //! time (a pair's state spills out of 16 registers). The blend is scalar, inlined into the window loop:
 //! that loop waits on the window's compare → permute chain, and the blend's arithmetic fills
 //! those cycles (a separate 16-hit SIMD blend pass measured no faster). Nothing per pixel is saved: the
-//! backward pass re-runs `composite_pixel`.
+//! backward pass re-runs `composite_pixel`. Narrow unrecorded frames with the default K (relit
+//! and display frames) go sixteen pixels at a time instead ([`block`]: SIMD over a 4 × 4 block,
+//! one candidate at a time, bit-identical).
 
 use super::project::{self, Projected};
 use super::tiles::{self, TileBins};
@@ -44,6 +46,8 @@ use crate::surfels::Surfels;
 use rayon::prelude::*;
 use std::cell::{Ref, RefCell};
 use wide::{f32x8, f32x16};
+
+mod block;
 
 /// Lanes of a packed candidate record (`Projected::packed`).
 pub(crate) const PK_TU: usize = 0;
@@ -302,8 +306,21 @@ pub(crate) fn splat_cross(
     mean2d: [f32x16; 2],
     filter_inv_square: f32,
 ) -> SplatCross {
-    let pxv = f32x16::splat(px);
-    let pyv = f32x16::splat(py);
+    splat_cross_lanes(f32x16::splat(px), f32x16::splat(py), tu, tv, tw, mean2d, filter_inv_square)
+}
+
+/// [`splat_cross`] with a pixel centre per lane (the pixel blocks of [`block`]: one
+/// candidate, sixteen pixels; the same operations, so the same values).
+#[inline(always)]
+pub(crate) fn splat_cross_lanes(
+    pxv: f32x16,
+    pyv: f32x16,
+    tu: [f32x16; 3],
+    tv: [f32x16; 3],
+    tw: [f32x16; 3],
+    mean2d: [f32x16; 2],
+    filter_inv_square: f32,
+) -> SplatCross {
     let k = [pxv * tw[0] - tu[0], pxv * tw[1] - tu[1], pxv * tw[2] - tu[2]];
     let l = [pyv * tw[0] - tv[0], pyv * tw[1] - tv[1], pyv * tw[2] - tv[2]];
     let hx = k[1] * l[2] - k[2] * l[1];
@@ -1172,14 +1189,8 @@ impl PixelSums {
         } else {
             self.row.to_array()
         };
+        write_row(out, at, tf, s, nch, &row);
         let a = row[BLEND_ONE];
-        out.alpha[at] = a;
-        if let Some(c) = out.colour.as_deref_mut() {
-            c[at] = std::array::from_fn(|ch| row[ch] + tf * s.background[ch]);
-        }
-        if let Some(n) = out.normal.as_deref_mut() {
-            n[at] = [row[3], row[4], row[5]];
-        }
         if let Some(d) = out.depth.as_deref_mut() {
             d[at] = if a > 0.0 { self.depth / a } else { 0.0 };
         }
@@ -1192,12 +1203,25 @@ impl PixelSums {
         if let Some(d) = out.surface.as_deref_mut() {
             d[at] = if a > 0.0 { self.surface / a } else { 0.0 };
         }
-        let f = &mut out.features[at * nch..(at + 1) * nch];
-        if nch <= ROW_FEATURES {
-            f.copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
-        } else {
-            f.copy_from_slice(&self.features[..nch]);
+        if nch > ROW_FEATURES {
+            out.features[at * nch..(at + 1) * nch].copy_from_slice(&self.features[..nch]);
         }
+    }
+}
+
+/// A pixel's outputs from its blend-row sums (T_final `tf` for the background): alpha,
+/// colour, normal and the features that fit the row (the rest are [`PixelSums::write`]'s).
+#[inline(always)]
+fn write_row(out: &mut RowOutputs, at: usize, tf: f32, s: &RasterSettings, nch: usize, row: &[f32; 16]) {
+    out.alpha[at] = row[BLEND_ONE];
+    if let Some(c) = out.colour.as_deref_mut() {
+        c[at] = std::array::from_fn(|ch| row[ch] + tf * s.background[ch]);
+    }
+    if let Some(n) = out.normal.as_deref_mut() {
+        n[at] = [row[3], row[4], row[5]];
+    }
+    if nch <= ROW_FEATURES {
+        out.features[at * nch..(at + 1) * nch].copy_from_slice(&row[BLEND_FEAT..BLEND_FEAT + nch]);
     }
 }
 
@@ -1209,7 +1233,28 @@ pub fn render(
     settings: &RasterSettings,
     features: Option<Features>,
 ) -> (RenderOutput, ForwardState) {
-    render_impl(surfels, camera, settings, features, None)
+    render_impl(surfels, camera, settings, features, None, Compositor::Blocks)
+}
+
+/// How narrow, unrecorded frames are composited (every other render goes pixel by pixel).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Compositor {
+    /// Sixteen pixels at a time ([`block`]).
+    Blocks,
+    /// One pixel at a time over sixteen candidates (tests: the blocks' reference).
+    Pixels,
+}
+
+/// [`render`] with the compositor chosen (tests compare the two).
+#[cfg(test)]
+pub(crate) fn render_with(
+    surfels: &Surfels,
+    camera: &Camera,
+    settings: &RasterSettings,
+    features: Option<Features>,
+    compositor: Compositor,
+) -> (RenderOutput, ForwardState) {
+    render_impl(surfels, camera, settings, features, None, compositor)
 }
 
 /// [`render`], keeping every pixel's blended hits in the state for [`crate::raster::render_backward`]
@@ -1222,7 +1267,7 @@ pub fn render_recorded(
     features: Option<Features>,
     reuse: PixelHitRecord,
 ) -> (RenderOutput, ForwardState) {
-    render_impl(surfels, camera, settings, features, Some((reuse, RECORD_BUDGET_BYTES)))
+    render_impl(surfels, camera, settings, features, Some((reuse, RECORD_BUDGET_BYTES)), Compositor::Pixels)
 }
 
 /// [`render_recorded`] with another budget (tests: rows that do not fit).
@@ -1235,7 +1280,7 @@ pub(crate) fn render_recorded_with_budget(
     reuse: PixelHitRecord,
     budget_bytes: usize,
 ) -> (RenderOutput, ForwardState) {
-    render_impl(surfels, camera, settings, features, Some((reuse, budget_bytes)))
+    render_impl(surfels, camera, settings, features, Some((reuse, budget_bytes)), Compositor::Pixels)
 }
 
 /// A hit record holds at most about this much (16 bytes a hit): once a row of tiles has used
@@ -1274,6 +1319,7 @@ fn render_impl(
     settings: &RasterSettings,
     features: Option<Features>,
     record: Option<(PixelHitRecord, usize)>,
+    compositor: Compositor,
 ) -> (RenderOutput, ForwardState) {
     let (mut record, budget_bytes) = match record {
         Some((r, b)) => (Some(r), b),
@@ -1300,7 +1346,7 @@ fn render_impl(
         // Each row of tiles writes its own slices of the outputs.
         let row_outputs = RowOutputs::split(&mut out, TILE * w, nch);
         let render_row = |td: &mut TileData, ty: usize, row_out: &mut RowOutputs, rec: Option<RowRecord>| {
-            render_tile_row(&proj, &bins, camera, settings, features, ty as u32, row_out, td, row_sets, rec)
+            render_tile_row(&proj, &bins, camera, settings, features, ty as u32, row_out, td, row_sets, rec, compositor)
         };
         let row_pairs = bins.row_pairs();
         match record.as_mut() {
@@ -1478,6 +1524,7 @@ fn render_tile_row(
     // Per-surfel blend rows, and their narrow form when the render blends those instead.
     rows: (&[f32x16], Option<&[f32x8]>),
     mut record: Option<RowRecord>,
+    compositor: Compositor,
 ) -> (u64, u64) {
     let w = camera.width;
     let h = camera.height;
@@ -1519,6 +1566,27 @@ fn render_tile_row(
         match rows {
             (_, Some(rows8)) if narrow => td.load_blend_rows8(rows8),
             (rows16, _) => td.load_blend_rows(rows16),
+        }
+        // Blocks for the default window (each K is its own unrolled copy).
+        if narrow && compositor == Compositor::Blocks && k == block::BLOCK_K {
+            for by in (y0..y1).step_by(block::BLOCK_H as usize) {
+                for bx in (x0..x1).step_by(block::BLOCK_W as usize) {
+                    let mut sums = [f32x8::ZERO; 16];
+                    let (tf, evaluated) =
+                        block::composite_block::<{ block::BLOCK_K }>(td, (bx, by), (x1, y1), s, &mut sums);
+                    for (l, (sum, ev)) in sums.iter().zip(&evaluated).enumerate() {
+                        let (x, y) = (bx + l as u32 % block::BLOCK_W, by + l as u32 / block::BLOCK_W);
+                        if x < x1 && y < y1 {
+                            let mut row = [0.0; 16];
+                            row[..8].copy_from_slice(&sum.to_array());
+                            write_row(out, ((y - y0) * w + x) as usize, tf[l], s, nch, &row);
+                            evals.0 += ev.performed as u64;
+                            evals.1 += ev.tile_list as u64;
+                        }
+                    }
+                }
+            }
+            continue;
         }
         for y in y0..y1 {
             // Pixels in pairs (see `composite_two_pixels`); a lone last one when x1 − x0 is odd.

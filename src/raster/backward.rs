@@ -484,7 +484,10 @@ fn pixel_backward(
         let tw = [gat(PK_TW), gat(PK_TW + 1), gat(PK_TW + 2)];
         let mean2d = [gat(PK_MEAN), gat(PK_MEAN + 1)];
         let op = gat(PK_OP);
-        let e = splat_finish(splat_cross(pxf, pyf, tu, tv, tw, mean2d, s.filter_inv_square), tw);
+        let e = splat_finish(
+            splat_cross(f32x16::splat(pxf), f32x16::splat(pyf), tu, tv, tw, mean2d, s.filter_inv_square),
+            tw,
+        );
         let (g, _, clamped) = splat_alpha(e.rho, op);
         cols[ROW_OPACITY] = clamped.select(zero, g * v_alpha);
         let v_rho = clamped.select(zero, splat(-0.5) * g * op * v_alpha);

@@ -296,23 +296,10 @@ pub(crate) struct SplatCross {
     rho2: f32x16,
 }
 
+/// Pixel centres per lane: one pixel's splatted against sixteen candidates (`eval16`, the
+/// backward), or sixteen pixels' against one candidate splatted (the pixel blocks of [`block`]).
 #[inline(always)]
 pub(crate) fn splat_cross(
-    px: f32,
-    py: f32,
-    tu: [f32x16; 3],
-    tv: [f32x16; 3],
-    tw: [f32x16; 3],
-    mean2d: [f32x16; 2],
-    filter_inv_square: f32,
-) -> SplatCross {
-    splat_cross_lanes(f32x16::splat(px), f32x16::splat(py), tu, tv, tw, mean2d, filter_inv_square)
-}
-
-/// [`splat_cross`] with a pixel centre per lane (the pixel blocks of [`block`]: one
-/// candidate, sixteen pixels; the same operations, so the same values).
-#[inline(always)]
-pub(crate) fn splat_cross_lanes(
     pxv: f32x16,
     pyv: f32x16,
     tu: [f32x16; 3],
@@ -423,8 +410,8 @@ pub(crate) fn eval16(
     let g = td.group(j0 / 16, records);
     let tw = [g[PK_TW], g[PK_TW + 1], g[PK_TW + 2]];
     let c = splat_cross(
-        px,
-        py,
+        f32x16::splat(px),
+        f32x16::splat(py),
         [g[PK_TU], g[PK_TU + 1], g[PK_TU + 2]],
         [g[PK_TV], g[PK_TV + 1], g[PK_TV + 2]],
         tw,

@@ -18,7 +18,7 @@
 
 use super::{
     Evaluated, PK_BOX_X, PK_BOX_Y, PK_MEAN, PK_OP, PK_RHO, PK_TU, PK_TV, PK_TW, QUARTER, Stop, TileData, splat_alpha,
-    splat_cross_lanes, splat_finish,
+    splat_cross, splat_finish,
 };
 use crate::raster::{MAX_WINDOW, RasterSettings};
 use wide::{f32x8, f32x16};
@@ -94,7 +94,7 @@ pub(super) fn composite_block<const K: usize>(
         }
         let lanes = |f: usize| f32x16::splat(r[f]);
         let tw = [lanes(PK_TW), lanes(PK_TW + 1), lanes(PK_TW + 2)];
-        let c = splat_cross_lanes(
+        let c = splat_cross(
             pxv,
             pyv,
             [lanes(PK_TU), lanes(PK_TU + 1), lanes(PK_TU + 2)],

@@ -49,7 +49,6 @@ fn bits(mask: f32x16) -> u32 {
 /// or y ≥ `y_end` are outside the image and not composited (never live: they would only keep
 /// the block going). Blends into `sums` (Σ w × narrow blend row per lane); returns each lane's final T and its
 /// evaluation counts, as [`super::composite_one_pixel`] would.
-#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 pub(super) fn composite_block<const K: usize>(
     td: &TileData,
@@ -135,7 +134,7 @@ pub(super) fn composite_block<const K: usize>(
                 m &= m - 1;
                 evaluated[l] = Evaluated { performed: j as u32 + 1, tile_list: li + 1 };
             }
-            live = live & !dead;
+            live &= !dead;
         }
         // The hit bubbles in from the far end: at each level it takes the place of an entry
         // with z ≤ its own (that entry moves one level nearer), so equal depths keep their

@@ -69,6 +69,10 @@ pub fn relit_frame_settings(cfg: &crate::train::config::TrainConfig) -> RasterSe
 }
 
 pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
+    let max_side = crate::io::dataset::MAX_IMAGE_SIDE;
+    if let Some(bad) = args.sizes.iter().find(|&&s| s == 0 || s > max_side) {
+        anyhow::bail!("--sizes {bad}: each size must be in 1..={max_side}");
+    }
     let cfg = crate::eval::load_run_config(&args.run)?;
     let surfels = crate::eval::load_run_surfels(&args.run)?;
     let dataset = crate::io::dataset::Dataset::open_downscaled(&cfg.data, cfg.resolution)?;

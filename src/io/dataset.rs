@@ -522,6 +522,9 @@ fn read_tensoir_view(folder: &Path) -> Result<(View, Option<String>)> {
     if w < 1.0 || h < 1.0 || w.fract() != 0.0 || h.fract() != 0.0 {
         return Err(Error::format(&meta_path, "imw/imh", format!("{w}×{h} is not a positive integer size")));
     }
+    if w.max(h) > MAX_IMAGE_SIDE as f64 {
+        return Err(Error::format(&meta_path, "imw/imh", format!("{w}×{h}: each side must be 1..={MAX_IMAGE_SIDE}")));
+    }
     let name = folder.file_name().unwrap_or_default().to_string_lossy().to_string();
     let camera = Camera::from_blender(name, c2w, w as u32, h as u32, angle)
         .map_err(|e| camera_error(&meta_path, "cam_transform_mat", e))?;
@@ -693,6 +696,17 @@ mod tests {
         assert_eq!(ds.passes_found(), vec![Pass::Albedo]);
         assert!(ds.test[0].load_pass(Pass::Albedo).unwrap().is_some());
         assert!(ds.test[0].load_pass(Pass::Indirect).unwrap().is_none());
+        // Sizes beyond the cap (a renderer would try to allocate them) are refused by name.
+        for size in ["100000", "1e12"] {
+            let meta = dir.join("test_000/metadata.json");
+            std::fs::write(
+                &meta,
+                format!(r#"{{"cam_transform_mat": "1,0,0,0,0,1,0,0,0,0,1,4,0,0,0,1", "cam_angle_x": 0.69, "imh": 6, "imw": {size}}}"#),
+            )
+            .unwrap();
+            let err = Dataset::open(&dir).unwrap_err().to_string();
+            assert!(err.contains("metadata.json") && err.contains("imw/imh") && err.contains("16384"), "{err}");
+        }
     }
 
     #[test]

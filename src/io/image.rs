@@ -287,6 +287,15 @@ pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
 /// Read named channels of an OpenEXR file's first layer (e.g. `["R", "G", "B"]`, or
 /// `["diffuse_indirect.R", ...]`). A name that is absent is an error naming it.
 pub fn read_exr_channels(path: &Path, names: &[&str]) -> Result<Image> {
+    // The header's size first: the decoder allocates whatever the data window claims.
+    let (w, h) = image_dimensions(path)?;
+    if w as u64 * h as u64 > MAX_PIXELS {
+        return Err(Error::format(
+            path,
+            "OpenEXR header",
+            format!("{w}×{h} is more than the {MAX_PIXELS} pixels an image may have"),
+        ));
+    }
     let image = exr::prelude::read_first_flat_layer_from_file(path).map_err(|e| match e {
         exr::error::Error::Io(io) => Error::io(path, io),
         other => Error::format(path, "OpenEXR data", other.to_string()),
@@ -738,6 +747,51 @@ mod tests {
             // The size alone is read from the header.
             assert_eq!(image_dimensions(&path).unwrap(), (w, h));
         }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_exr_header_promising_too_many_pixels_is_refused_before_decoding() {
+        // A scan-line header alone (no offset table, no pixels) whose data window claims
+        // 200000 × 100000 pixels: the decoder would allocate 80 GB for it.
+        fn attr(name: &str, kind: &str, data: &[u8]) -> Vec<u8> {
+            let mut v = [name.as_bytes(), &[0], kind.as_bytes(), &[0]].concat();
+            v.extend((data.len() as i32).to_le_bytes());
+            v.extend(data);
+            v
+        }
+        let mut channels = Vec::new();
+        for c in ["A", "B", "G", "R"] {
+            channels.extend([c.as_bytes(), &[0]].concat());
+            channels.extend(2i32.to_le_bytes()); // f32 samples
+            channels.extend([0u8; 4]);
+            channels.extend(1i32.to_le_bytes());
+            channels.extend(1i32.to_le_bytes());
+        }
+        channels.push(0);
+        let window: Vec<u8> = [0i32, 0, 199_999, 99_999].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let mut bytes = vec![0x76, 0x2f, 0x31, 0x01];
+        bytes.extend(2i32.to_le_bytes());
+        for a in [
+            attr("channels", "chlist", &channels),
+            attr("compression", "compression", &[0]),
+            attr("dataWindow", "box2i", &window),
+            attr("displayWindow", "box2i", &window),
+            attr("lineOrder", "lineOrder", &[0]),
+            attr("pixelAspectRatio", "float", &1f32.to_le_bytes()),
+            attr("screenWindowCenter", "v2f", &[0u8; 8]),
+            attr("screenWindowWidth", "float", &1f32.to_le_bytes()),
+        ] {
+            bytes.extend(a);
+        }
+        bytes.push(0);
+        let dir = std::env::temp_dir().join(format!("radiogs-exrhuge-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("huge.exr");
+        std::fs::write(&path, &bytes).unwrap();
+        assert_eq!(image_dimensions(&path).unwrap(), (200_000, 100_000));
+        let err = read_rgba(&path).unwrap_err().to_string();
+        assert!(err.contains("huge.exr") && err.contains("more than the"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

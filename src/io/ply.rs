@@ -140,7 +140,10 @@ fn vertex_layout<'a>(path: &Path, elements: &'a [Element]) -> Result<(&'a Elemen
         if e.name == "vertex" {
             return Ok((e, offset));
         }
-        offset += e.count * e.properties.iter().map(|p| p.1.size()).sum::<usize>();
+        let bytes = e.count.checked_mul(e.properties.iter().map(|p| p.1.size()).sum::<usize>());
+        offset = bytes
+            .and_then(|b| b.checked_add(offset))
+            .ok_or_else(|| Error::format(path, format!("element {}", e.name), "its size overflows"))?;
     }
     Err(Error::format(path, "element vertex", "missing"))
 }
@@ -206,7 +209,9 @@ pub fn read_ply(path: &Path) -> Result<Surfels> {
         };
     let roughness_col = column.get("roughness").copied();
 
-    let start = body + offset;
+    let start = body.checked_add(offset).filter(|&s| s <= bytes.len()).ok_or_else(|| {
+        Error::format(path, "element vertex", "the elements before it need more bytes than the file holds")
+    })?;
     let needed = vertex.count.checked_mul(stride).and_then(|n| n.checked_add(start));
     if needed.is_none_or(|n| n > bytes.len()) {
         // Too short for the header's layout: cut short, or the header's types (the bytes of a
@@ -258,15 +263,24 @@ pub fn read_ply(path: &Path) -> Result<Surfels> {
             None => surfels::logit(surfels::DEFAULT_ROUGHNESS),
         });
     }
-    if let Some(i) = (0..s.len()).find(|&i| {
-        s.means[i]
-            .iter()
-            .chain(&s.log_scales[i])
-            .chain(&s.quats[i])
-            .chain(std::iter::once(&s.opacity_logits[i]))
-            .any(|v| !v.is_finite())
-    }) {
-        return Err(Error::format(path, format!("surfel {i}"), "a value is NaN or infinite"));
+    // Every field must be finite: a NaN colour or material renders and trains as silently as
+    // a NaN position would not.
+    for i in 0..s.len() {
+        let bad = |v: &[f32]| v.iter().position(|x| !x.is_finite());
+        let sh = s.sh[i].as_flattened();
+        let fields: [(&str, Option<usize>); 8] = [
+            ("x, y, z", bad(&s.means[i])),
+            ("scale_0..1", bad(&s.log_scales[i])),
+            ("rot_0..3", bad(&s.quats[i])),
+            ("opacity", bad(&[s.opacity_logits[i]])),
+            ("f_dc_0..2", bad(&sh[..3])),
+            ("f_rest", bad(&sh[3..])),
+            ("albedo_0..2", bad(&s.albedo_logits[i])),
+            ("roughness", bad(&[s.roughness_logits[i]])),
+        ];
+        if let Some((name, _)) = fields.iter().find(|f| f.1.is_some()) {
+            return Err(Error::format(path, format!("surfel {i}: {name}"), "a value is NaN or infinite"));
+        }
     }
     if let Some(i) = (0..s.len()).find(|&i| s.quats[i].iter().all(|v| *v == 0.0)) {
         return Err(Error::format(path, format!("surfel {i}: rot_0..3"), "the quaternion is zero"));
@@ -514,6 +528,44 @@ mod tests {
         std::fs::write(&path, &lying).unwrap();
         let err = read_ply(&path).unwrap_err().to_string();
         assert!(err.contains("vertex data") && err.contains("opacity is double, not float"), "{err}");
+
+        // A NaN or infinity in any field of surfel 2 is refused naming the surfel and the field.
+        let names: Vec<String> = String::from_utf8_lossy(&bytes[..body])
+            .lines()
+            .filter_map(|l| l.strip_prefix("property float ").map(String::from))
+            .collect();
+        let stride = 4 * names.len();
+        for (field, named) in [
+            ("f_dc_1", "f_dc_0..2"),
+            ("f_rest_44", "f_rest"),
+            ("albedo_2", "albedo_0..2"),
+            ("roughness", "roughness"),
+            ("opacity", "opacity"),
+            ("z", "x, y, z"),
+        ] {
+            let k = names.iter().position(|n| n == field).unwrap();
+            for bad in [f32::NAN, f32::INFINITY] {
+                let mut b = bytes.clone();
+                let at = body + 2 * stride + 4 * k;
+                b[at..at + 4].copy_from_slice(&bad.to_le_bytes());
+                std::fs::write(&path, &b).unwrap();
+                let err = read_ply(&path).unwrap_err().to_string();
+                assert!(err.contains("surfel 2") && err.contains(named) && err.contains("NaN"), "{field}: {err}");
+            }
+        }
+
+        // Elements before the vertices whose byte size overflows, or that the file cannot
+        // hold, are refused (they used to wrap and move the vertex data).
+        for (props, expect) in [(4, "overflows"), (1, "more bytes than the file holds")] {
+            let face =
+                format!("element face 4611686018427387903\n{}element vertex", "property float a\n".repeat(props));
+            let text = String::from_utf8_lossy(&bytes[..body]).replace("element vertex", &face);
+            let mut huge = text.into_bytes();
+            huge.extend_from_slice(&bytes[body..]);
+            std::fs::write(&path, &huge).unwrap();
+            let err = read_ply(&path).unwrap_err().to_string();
+            assert!(err.contains("s.ply") && err.contains("element") && err.contains(expect), "{err}");
+        }
 
         std::fs::write(&path, b"not a ply").unwrap();
         assert!(read_ply(&path).unwrap_err().to_string().contains("end_header"));

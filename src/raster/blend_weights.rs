@@ -76,7 +76,7 @@ impl BlendWeights {
             out.ids.extend(ids);
             out.weights.extend(weights);
         }
-        out.alpha = (0..(w * h) as usize)
+        out.alpha = (0..w as usize * h as usize)
             .into_par_iter()
             .with_min_len(1024)
             .map(|p| out.weights[out.offsets[p] as usize..out.offsets[p + 1] as usize].iter().sum())

@@ -1373,7 +1373,7 @@ impl RenderOutput {
     /// Zeroed outputs for a w × h render: alpha always, the others when requested (empty
     /// otherwise), `nch` feature channels.
     fn sized(w: u32, h: u32, nch: usize, s: &RasterSettings) -> RenderOutput {
-        let px = (w * h) as usize;
+        let px = w as usize * h as usize;
         let o = s.outputs;
         let sized = |on: bool| if on { px } else { 0 };
         RenderOutput {

@@ -143,7 +143,7 @@ impl Checkpoint {
             let len =
                 entry.get("len").and_then(|n| n.as_u64()).ok_or_else(|| Error::format(path, "blobs", "bad length"))?
                     as usize;
-            let end = at.checked_add(len * 4).filter(|&e| e <= bytes.len());
+            let end = len.checked_mul(4).and_then(|b| at.checked_add(b)).filter(|&e| e <= bytes.len());
             let end = end.ok_or_else(|| Error::format(path, format!("blob {name}"), "truncated"))?;
             let data: Vec<f32> =
                 bytes[at..end].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();

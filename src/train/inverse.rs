@@ -196,7 +196,7 @@ impl InverseState {
             c.meta
                 .get(key)
                 .and_then(|v| v.as_u64())
-                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
+                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
         };
         let surfels = c.get_surfels(path, "params")?;
         let extent = c.meta.get("extent").and_then(|v| v.as_f64()).unwrap_or(1.0) as f32;
@@ -220,6 +220,20 @@ impl InverseState {
         };
         if cache.len() != surfels.len() && !cache.is_empty() {
             return Err(Error::format(path, "cache", "row count differs from the surfel count"));
+        }
+        // Every per-ray blob holds one entry per ray (shading indexes them together).
+        let rays = cache.visibility.len();
+        for (name, len) in [("cache.dirs", cache.dirs.len()), ("cache.indirect", cache.indirect.len())] {
+            if len != rays {
+                return Err(Error::format(path, name, format!("{len} rays, but cache.visibility holds {rays}")));
+            }
+        }
+        if samples * surfels.len() != rays && rays != 0 {
+            return Err(Error::format(
+                path,
+                "cache_samples",
+                format!("{samples} per surfel × {} surfels is not the cache's {rays} rays", surfels.len()),
+            ));
         }
         let iteration = meta_u64("iteration")? as u32;
         // Checkpoints from before the per-row refresh: every row as old as the checkpoint.
@@ -1000,6 +1014,32 @@ pub fn run_until(
 mod tests {
     use super::*;
     use crate::shade::splitsum::BrdfLut;
+
+    /// A checkpoint whose cache blobs disagree in length (cut, or from another run) is refused
+    /// by name when it is loaded, not left to panic in the first shading step.
+    #[test]
+    fn checkpoint_cache_blobs_of_the_wrong_length_are_refused_by_name() {
+        let cfg = TrainConfig::default();
+        let s = Surfels::random_in_box(5, [-1.0; 3], [1.0; 3], 3);
+        let Ok(mut state) = InverseState::from_nvs(&cfg, s.clone(), &[], 1.0, None, false) else { panic!("state") };
+        let tracer = Tracer::build(&s, &trace_settings());
+        state.cache.refresh(&tracer, &s, 4, crate::shade::incident::RayStart::offset_only(1e-3), 1);
+        state.traced_at = vec![0; s.len()];
+        let path = Path::new("run/checkpoint_inverse.bin");
+        let good = state.to_checkpoint(&cfg);
+        assert!(InverseState::from_checkpoint(path, &good, &cfg).is_ok());
+        for (blob, keep) in [("cache.dirs", 9), ("cache.indirect", 30), ("cache.dirs", 0)] {
+            let mut c = good.clone();
+            let cut = c.blob(blob).unwrap()[..keep].to_vec();
+            c.put(blob, cut);
+            let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
+            assert!(err.contains("checkpoint_inverse.bin") && err.contains(blob), "{err}");
+        }
+        let mut c = good.clone();
+        c.meta["cache_samples"] = serde_json::json!(3);
+        let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
+        assert!(err.contains("cache"), "{err}");
+    }
 
     /// The split-sum PBR colour of `SurfelShading` (Lambert Monte Carlo + occluded split-sum
     /// lobe) against finite differences of its backward (`shade_subset_backward` with the

@@ -58,7 +58,7 @@ impl LearnedLight {
             c.meta
                 .get(key)
                 .and_then(|v| v.as_u64())
-                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
+                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
         };
         let h = meta_u64("env_height")? as usize;
         if h < 8 || h % 8 != 0 {

@@ -213,7 +213,7 @@ impl NvsState {
             c.meta
                 .get(key)
                 .and_then(|v| v.as_u64())
-                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint"))
+                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
         };
         let surfels = c.get_surfels(path, "params")?;
         let stage = match c.meta.get("stage").and_then(|s| s.as_str()) {

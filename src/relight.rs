@@ -297,6 +297,18 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     if !(1..=1 << 24).contains(&args.rc_surfels) {
         anyhow::bail!("--rc-surfels {}: must be 1..=16777216", args.rc_surfels);
     }
+    // The relit run is a new folder (or a previous relit run): never the trained run it
+    // comes from, nor another trained run, whose checkpoints would then describe other files.
+    let same = |a: &Path, b: &Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(a), Ok(b)) if a == b);
+    if same(&args.out, run) {
+        anyhow::bail!("--out {}: is the run being relit; write the relit run to another folder", args.out.display());
+    }
+    if let Some(f) = ["checkpoint.bin", "checkpoint_init.bin", "checkpoint_inverse.bin"]
+        .into_iter()
+        .find(|f| args.out.join(f).is_file())
+    {
+        anyhow::bail!("--out {}: holds a trained run ({f}); write the relit run to a new folder", args.out.display());
+    }
     let cfg = crate::eval::load_run_config(run)?;
     let mut surfels = crate::eval::load_run_surfels(run)?;
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;

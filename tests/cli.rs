@@ -111,6 +111,28 @@ fn zero_intervals_are_refused_by_name() {
     }
 }
 
+/// Frame sizes beyond what the renderer may allocate are refused before any work (a
+/// 100000² frame used to panic in the compositor after a minute).
+#[test]
+fn bench_frame_sizes_out_of_range_are_refused_by_flag() {
+    for size in ["0", "100000"] {
+        let (code, _, err) = radiogs(&["bench", "relight", "--run", "/nonexistent/run", "--sizes", size]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("--sizes") && err.contains(size) && !err.contains("panicked"), "{err}");
+    }
+}
+
+/// `demo --iters 0` is refused before the dataset is synthesised.
+#[test]
+fn demo_settings_are_checked_before_synthesis() {
+    let dir = temp_dir("demo0");
+    let out = dir.join("demo");
+    let (code, _, err) = radiogs(&["demo", "--out", out.to_str().unwrap(), "--iters", "0"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("iters") && !err.contains("panicked"), "{err}");
+    assert!(!out.join("data").exists(), "the dataset was synthesised first");
+}
+
 /// `radiogs synth` of a tiny dataset into `data` (res², `train_views` training views, 1 test
 /// view, 1 spp, then `extra` arguments); returns its standard error.
 fn synth_tiny(data: &std::path::Path, res: &str, train_views: &str, extra: &[&str]) -> String {
@@ -145,6 +167,125 @@ fn truncated_training_image_is_refused_before_anything_is_written() {
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("train_001/rgba.png") && err.contains("truncated") && !err.contains("panicked"), "{err}");
     assert!(!out.exists(), "a bad image left {}", out.display());
+}
+
+/// Training afresh into a folder that holds a trained run is refused before anything in it
+/// changes (a failed re-train used to leave a mix of both runs); `--resume` continues it and
+/// `--overwrite` replaces it. The dataset folder is never a run folder.
+#[test]
+fn a_trained_run_is_not_replaced_without_overwrite() {
+    let dir = temp_dir("rerun");
+    let data = tiny_dataset(&dir);
+    let (data_s, out) = (data.to_str().unwrap(), dir.join("run"));
+    let out_s = out.to_str().unwrap();
+    let train = |extra: &[&str]| {
+        let mut args = vec!["train", "--data", data_s, "--out", out_s];
+        args.extend_from_slice(extra);
+        radiogs(&args)
+    };
+    let (code, _, err) = train(&["--iters", "2"]);
+    assert_eq!(code, 0, "{err}");
+    let listing = |p: &std::path::Path| {
+        let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(p)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.is_file())
+            .map(|p| (p.file_name().unwrap().to_string_lossy().to_string(), std::fs::read(&p).unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    let before = listing(&out);
+    for stage in ["nvs", "all"] {
+        let (code, _, err) = train(&["--stage", stage, "--iters", "3"]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains(out_s) && err.contains("--overwrite") && err.contains("--resume"), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+    assert!(listing(&out) == before, "a refused run changed the folder");
+    // The inverse stage starts from the folder's nvs checkpoint: allowed.
+    let (code, _, err) = train(&["--stage", "inverse", "--iters", "2", "--inverse-iters", "2"]);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = train(&["--stage", "inverse", "--iters", "2", "--inverse-iters", "2"]);
+    assert_eq!(code, 1, "a second fresh inverse stage: {err}");
+    assert!(err.contains("checkpoint_inverse.bin") || err.contains("envmap.exr"), "{err}");
+    // Relighting never writes into a trained run (its own, or another).
+    let other = dir.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::copy(out.join("checkpoint.bin"), other.join("checkpoint.bin")).unwrap();
+    for (to, expect) in [(out_s, "is the run being relit"), (other.to_str().unwrap(), "holds a trained run")] {
+        let (code, _, err) = radiogs(&["relight", "--run", out_s, "--envmap", "/nonexistent/sky.hdr", "--out", to]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains(expect) && !err.contains("panicked"), "{err}");
+    }
+    let (code, _, err) = train(&["--overwrite", "--iters", "3"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(!out.join("envmap.exr").exists(), "--overwrite leaves no stale inverse outputs");
+    let (code, _, err) = radiogs(&["train", "--data", data_s, "--out", data_s, "--iters", "2"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("dataset folder"), "{err}");
+}
+
+/// A bad initial light or initial surfel file stops training before the run folder is made
+/// (the light used to be read only after the whole nvs stage).
+#[test]
+fn bad_initialisation_files_are_refused_before_anything_is_written() {
+    let dir = temp_dir("badinit");
+    let data = tiny_dataset(&dir);
+    let bad = dir.join("bad.exr");
+    std::fs::write(&bad, b"not an OpenEXR file").unwrap();
+    let out = dir.join("run");
+    for (flag, file) in [
+        ("--env-init-map", bad.to_str().unwrap()),
+        ("--env-init-map", "/nonexistent/sky.exr"),
+        ("--init-ply", "/nonexistent/p.ply"),
+    ] {
+        let args =
+            ["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iters", "2", flag, file];
+        let (code, _, err) = radiogs(&args);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains(file) && !err.contains("panicked"), "{flag} {file}: {err}");
+        assert!(!out.exists(), "{flag} {file} left {}", out.display());
+    }
+}
+
+/// An evaluation that fails half-way (a bad test pass read after the first pictures are made)
+/// leaves the previous `RUN/eval` untouched and no partial folder.
+#[test]
+fn a_failed_eval_leaves_the_previous_one_whole() {
+    let dir = temp_dir("evalfail");
+    let data = tiny_dataset(&dir);
+    let run = dir.join("run");
+    let (data_s, run_s) = (data.to_str().unwrap(), run.to_str().unwrap());
+    let args = ["train", "--data", data_s, "--out", run_s, "--stage", "all", "--iters", "2", "--inverse-iters", "2"];
+    let (code, _, err) = radiogs(&args);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = radiogs(&["eval", "--run", run_s, "--no-relight"]);
+    assert_eq!(code, 0, "{err}");
+    let eval = run.join("eval");
+    let snapshot = || {
+        let mut v: Vec<(std::path::PathBuf, std::time::SystemTime)> = std::fs::read_dir(&eval)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .map(|p| (p.clone(), std::fs::metadata(&p).unwrap().modified().unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    let before = snapshot();
+    assert!(before.iter().any(|(p, _)| p.ends_with("metrics.json")));
+    // The albedo pass is read by the PBR part, after the views' pictures are written.
+    let albedo = data.join("test_000/albedo.png");
+    let bytes = std::fs::read(&albedo).unwrap();
+    std::fs::write(&albedo, &bytes[..bytes.len() / 2]).unwrap();
+    let (code, _, err) = radiogs(&["eval", "--run", run_s, "--no-relight"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("albedo.png") && !err.contains("panicked"), "{err}");
+    assert!(snapshot() == before, "the failed eval changed RUN/eval");
+    assert!(!run.join("eval.partial").exists());
+    let (code, _, err) = radiogs(&["eval", "--run", run_s, "--no-relight", "--json", dir.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("--json") && err.contains("folder"), "{err}");
 }
 
 /// A run folder without `config.toml` (a 2DGS output) names the missing dataset instead of an

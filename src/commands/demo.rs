@@ -50,6 +50,29 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     let data = args.out.join("data");
     let run = args.out.join("run");
+    let cfg = {
+        use clap::Parser;
+        TrainWrapper::try_parse_from([
+            "train",
+            "--data",
+            &data.to_string_lossy(),
+            "--out",
+            &run.to_string_lossy(),
+            "--stage",
+            "all",
+            "--iters",
+            &args.iters.to_string(),
+            "--inverse-iters",
+            &args.inverse_iters.to_string(),
+            "--seed",
+            &args.seed.to_string(),
+            // A demo run again retrains its own run folder.
+            "--overwrite",
+        ])?
+        .args
+    };
+    // Settings that cannot train are refused before minutes of synthesis.
+    cfg.validate()?;
     if !data.join("transforms_train.json").is_file() {
         use clap::Parser;
         let synth = SynthWrapper::try_parse_from([
@@ -81,25 +104,6 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         args.inverse_iters,
         run.display()
     );
-    let cfg = {
-        use clap::Parser;
-        TrainWrapper::try_parse_from([
-            "train",
-            "--data",
-            &data.to_string_lossy(),
-            "--out",
-            &run.to_string_lossy(),
-            "--stage",
-            "all",
-            "--iters",
-            &args.iters.to_string(),
-            "--inverse-iters",
-            &args.inverse_iters.to_string(),
-            "--seed",
-            &args.seed.to_string(),
-        ])?
-        .args
-    };
     crate::train::run(&cfg)?;
     eprintln!("[3/4] evaluating, and relighting under the dataset's other lights (traced and finetuned)");
     crate::eval::run(&crate::eval::EvalArgs {

@@ -133,10 +133,12 @@ pub fn normal_mae_degrees(pred: &[[f32; 3]], gt: &Image) -> f32 {
         if mask < 0.5 {
             continue;
         }
+        // f64: squares of any finite f32 stay finite (a GT pass may hold huge values).
+        let (p, g) = (p.map(f64::from), [g[0], g[1], g[2]].map(f64::from));
         let lp = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
         let lg = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
         let cos = if lp > 1e-8 && lg > 1e-8 { (p[0] * g[0] + p[1] * g[1] + p[2] * g[2]) / (lp * lg) } else { 0.0 };
-        sum += (cos.clamp(-1.0, 1.0) as f64).acos().to_degrees();
+        sum += cos.clamp(-1.0, 1.0).acos().to_degrees();
     }
     (sum / pred.len().max(1) as f64) as f32
 }
@@ -548,6 +550,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if args.relight_bounces == 0 {
         anyhow::bail!("--relight-bounces 0: must be at least 1 (1 = the unoccluded env lights the hit surfels)");
     }
+    if let Some(json) = &args.json
+        && json.is_dir()
+    {
+        anyhow::bail!("--json {}: is a folder; give a file path (or - for standard output)", json.display());
+    }
     let surfels = load_run_surfels(&args.run)?;
     let pbr_scene = crate::pbr_scene::PbrScene::from_run(&args.run)?;
     let cfg = load_run_config(&args.run)?;
@@ -565,7 +572,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if args.limit > 0 {
         views.truncate(args.limit);
     }
-    let out_dir = args.run.join("eval");
+    // Pictures and metrics go to RUN/eval.partial and replace RUN/eval only when all of them
+    // are written: an evaluation that fails half-way (a bad file among the test passes) leaves
+    // the previous one whole.
+    let final_dir = args.run.join("eval");
+    let out_dir = args.run.join("eval.partial");
+    let _ = std::fs::remove_dir_all(&out_dir);
+    std::fs::create_dir_all(&out_dir).map_err(|e| crate::Error::io(&out_dir, e))?;
+    let mut partial = PartialDir(Some(out_dir.clone()));
     let bg = [1.0f32; 3];
     let settings = RasterSettings {
         window: cfg.window,
@@ -729,21 +743,58 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         }
     }
     let text = serde_json::to_string_pretty(&summary)?;
+    if args.json.is_none() {
+        crate::io::atomic::write_atomic(&out_dir.join("metrics.json"), text.as_bytes())?;
+    }
+    partial.publish(&final_dir)?;
     if args.json.as_deref() == Some(Path::new("-")) {
         println!("{text}");
         return Ok(());
     }
-    let path = args.json.clone().unwrap_or_else(|| out_dir.join("metrics.json"));
-    crate::io::atomic::write_atomic(&path, text.as_bytes())?;
+    let path = args.json.clone().unwrap_or_else(|| final_dir.join("metrics.json"));
+    if args.json.is_some() {
+        crate::io::atomic::write_atomic(&path, text.as_bytes())?;
+    }
     println!("{}", serde_json::to_string_pretty(&summary["mean"])?);
     eprintln!("metrics → {}", path.display());
     Ok(())
+}
+
+/// An output folder being filled: removed when dropped (the command failed), unless
+/// [`publish`](Self::publish)ed in place of the folder it replaces.
+struct PartialDir(Option<std::path::PathBuf>);
+
+impl PartialDir {
+    fn publish(&mut self, to: &Path) -> crate::Result<()> {
+        let Some(from) = self.0.take() else { return Ok(()) };
+        if to.exists() {
+            std::fs::remove_dir_all(to).map_err(|e| crate::Error::io(to, e))?;
+        }
+        std::fs::rename(&from, to).map_err(|e| crate::Error::io(to, e))
+    }
+}
+
+impl Drop for PartialDir {
+    fn drop(&mut self) {
+        if let Some(dir) = self.0.take() {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
+
+    /// Huge but finite GT normals (a pass scaled wrong) still give an angle, not NaN.
+    #[test]
+    fn normal_error_of_huge_gt_vectors_is_finite() {
+        let mut gt = Image::new(2, 1, 4);
+        gt.data = vec![3e38, 0.0, 0.0, 1.0, 0.0, -3e38, 3e38, 1.0];
+        let mae = normal_mae_degrees(&[[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], &gt);
+        assert!((mae - (0.0 + 45.0) / 2.0).abs() < 1e-3, "{mae}");
+    }
 
     /// Without a PLY the newest checkpoint of any stage gives the surfels: the inverse stage's
     /// over an older nvs one (it used to take the nvs one, beside the inverse stage's light),

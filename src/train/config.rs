@@ -81,6 +81,11 @@ pub struct TrainConfig {
     #[arg(long)]
     #[serde(skip)]
     pub resume: bool,
+    /// Train afresh into a run folder that already holds a trained run, replacing its files
+    /// (without this such a folder is refused: continue it with --resume, or pick a new --out).
+    #[arg(long)]
+    #[serde(skip)]
+    pub overwrite: bool,
     /// Random seed: same seed, data and settings give the same run.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -478,6 +483,7 @@ impl TrainConfig {
             merged.try_into().map_err(|e: toml::de::Error| Error::format(path, "TOML", e.message().to_string()))?;
         out.config = cli.config.clone();
         out.resume = cli.resume;
+        out.overwrite = cli.overwrite;
         Ok(out)
     }
 

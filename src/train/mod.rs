@@ -24,6 +24,19 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     // A truncated or corrupt training image stops here, before anything is written (the
     // stages read the images again; a decode costs little beside an iteration).
     dataset.check_images(Split::Train)?;
+    // Inputs the stages read later are read once here too, so that a bad file stops the run
+    // before anything is written (an --env-init-map used to fail after the whole nvs stage).
+    if let Some(path) = &cfg.env_init_map {
+        crate::envmap::EnvMap::load(path)?;
+    }
+    if let Some(path) = &cfg.init_ply
+        && !cfg.resume
+    {
+        crate::io::ply::read_ply(path)?;
+    }
+    if !cfg.resume && !cfg.overwrite {
+        refuse_trained_run(cfg)?;
+    }
     std::fs::create_dir_all(&cfg.out).map_err(|e| crate::Error::io(&cfg.out, e))?;
     if !cfg.resume && matches!(cfg.stage, Stage::Nvs | Stage::Init | Stage::All) {
         remove_stale_inverse_outputs(&cfg.out)?;
@@ -92,6 +105,36 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// A fresh run into a folder that holds a trained run would replace that run's files one by
+/// one as the new stages write theirs; if the new run then fails, the folder mixes both. So
+/// without `--overwrite` such a folder is refused before anything is written: the geometry
+/// stages refuse any trained run's files, the inverse stage (which starts from the folder's
+/// geometry checkpoint) only a previous inverse stage's. The dataset folder itself is never a run.
+fn refuse_trained_run(cfg: &TrainConfig) -> crate::Result<()> {
+    let out = &cfg.out;
+    let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(a), Ok(b)) if a == b);
+    if same(out, &cfg.data) {
+        return Err(crate::Error::invalid(
+            format!("--out {}", out.display()),
+            "is the dataset folder; write the run somewhere else",
+        ));
+    }
+    let trained: &[&str] = match cfg.stage {
+        Stage::Inverse => &["checkpoint_inverse.bin", "envmap.exr"],
+        _ => &["checkpoint.bin", "checkpoint_init.bin", "checkpoint_inverse.bin", "point_cloud.ply", "envmap.exr"],
+    };
+    match trained.iter().find(|f| out.join(f).is_file()) {
+        Some(f) => Err(crate::Error::invalid(
+            format!("--out {}", out.display()),
+            format!(
+                "already holds a trained run ({f}); continue it with --resume, pass --overwrite to replace it, or \
+                 choose another folder"
+            ),
+        )),
+        None => Ok(()),
+    }
 }
 
 /// A resumed run continues with the images it is given; say so when they are not the ones

@@ -210,15 +210,21 @@ impl Surfels {
         if lens.iter().any(|&l| l != n) {
             return Err(Error::invalid("surfels", format!("array lengths differ: {n} means vs {lens:?}")));
         }
-        let finite = self.means.iter().flatten().all(|v| v.is_finite())
-            && self.log_scales.iter().flatten().all(|v| v.is_finite())
-            && self.quats.iter().flatten().all(|v| v.is_finite())
-            && self.opacity_logits.iter().all(|v| v.is_finite())
-            && self.sh.iter().flatten().flatten().all(|v| v.is_finite())
-            && self.albedo_logits.iter().flatten().all(|v| v.is_finite())
-            && self.roughness_logits.iter().all(|v| v.is_finite());
-        if !finite {
-            return Err(Error::invalid("surfels", "a parameter is NaN or infinite"));
+        // The first surfel with a non-finite value, and which parameter it is in.
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        for i in 0..n {
+            let params: [(&str, bool); 7] = [
+                ("means", finite(&self.means[i])),
+                ("log_scales", finite(&self.log_scales[i])),
+                ("quats", finite(&self.quats[i])),
+                ("opacity_logits", self.opacity_logits[i].is_finite()),
+                ("sh", finite(self.sh[i].as_flattened())),
+                ("albedo_logits", finite(&self.albedo_logits[i])),
+                ("roughness_logits", self.roughness_logits[i].is_finite()),
+            ];
+            if let Some((name, _)) = params.iter().find(|p| !p.1) {
+                return Err(Error::invalid("surfels", format!("surfel {i}: {name} is NaN or infinite")));
+            }
         }
         Ok(())
     }

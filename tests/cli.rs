@@ -120,6 +120,12 @@ fn bench_frame_sizes_out_of_range_are_refused_by_flag() {
         assert_eq!(code, 1, "{err}");
         assert!(err.contains("--sizes") && err.contains(size) && !err.contains("panicked"), "{err}");
     }
+    // The raster bench takes the windows `render --k` takes.
+    for k in ["0", "1000"] {
+        let (code, _, err) = radiogs(&["bench", "raster", "--quick", "--k", k]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("--k") && err.contains(k) && !err.contains("panicked"), "{err}");
+    }
 }
 
 /// `demo --iters 0` is refused before the dataset is synthesised.

@@ -123,6 +123,10 @@ fn peak_rss_mib() -> f64 {
 }
 
 pub fn run(args: &RasterBenchArgs) -> anyhow::Result<()> {
+    // The window sizes `render --k` takes.
+    if let Some(bad) = args.k.iter().find(|k| !(1..=crate::raster::MAX_WINDOW).contains(k)) {
+        anyhow::bail!("--k {bad}: each window must be in 1..={}", crate::raster::MAX_WINDOW);
+    }
     let mut cases: Vec<(usize, u32, bool)> =
         if args.quick { vec![(10_000, 256, false)] } else { vec![(10_000, 256, false), (100_000, 800, false)] };
     if args.train_only {

@@ -89,6 +89,11 @@ impl Checkpoint {
             .collect(),
             sh_degree: degree as u32,
         };
+        // Named here (file and blobs): a NaN would otherwise surface as a diverged loss.
+        s.validate().map_err(|e| match e {
+            Error::Invalid { reason, .. } => Error::format(path, format!("blobs {prefix}.*"), reason),
+            other => other,
+        })?;
         Ok(s)
     }
 
@@ -170,6 +175,17 @@ mod tests {
         let back = Checkpoint::load(&path).unwrap();
         assert_eq!(back, c);
         assert_eq!(back.get_surfels(&path, "params").unwrap(), s);
+        // A NaN in any parameter is named with the file, the blobs, the surfel and the parameter.
+        for (blob, at, named) in
+            [("params.sh", 3 * 16 * 5 + 4, "surfel 5: sh"), ("params.quats", 4 * 16 + 1, "surfel 16: quats")]
+        {
+            let mut bad = c.clone();
+            let mut v = bad.blob(blob).unwrap().to_vec();
+            v[at] = f32::NAN;
+            bad.put(blob, v);
+            let err = bad.get_surfels(&path, "params").unwrap_err().to_string();
+            assert!(err.contains("a.ckpt") && err.contains("params") && err.contains(named), "{err}");
+        }
 
         let mut bytes = std::fs::read(&path).unwrap();
         bytes[8] = 99;

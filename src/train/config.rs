@@ -564,6 +564,9 @@ impl TrainConfig {
         if !(1..=256).contains(&self.pbr_samples) {
             return bad("pbr_samples", format!("{} is not in 1..=256", self.pbr_samples));
         }
+        if self.rc_surfels == 0 {
+            return bad("rc_surfels", "must be at least 1".into());
+        }
         if !(1..=256).contains(&self.rc_rays) {
             return bad("rc_rays", format!("{} is not in 1..=256", self.rc_rays));
         }
@@ -670,6 +673,9 @@ mod tests {
         );
         let err = TrainConfig { depth_ratio: 1.5, ..TrainConfig::default() }.validate().unwrap_err().to_string();
         assert!(err.contains("depth_ratio"), "{err}");
+        // No consistency batch is λ_rc = 0, not 0 surfels (relight refuses 0 too).
+        let err = TrainConfig { rc_surfels: 0, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+        assert!(err.contains("rc_surfels"), "{err}");
         // A cap of 0 would reset opacity logits to −∞.
         for bad in [0.0, -0.1, 1.5, f32::NAN] {
             let err =

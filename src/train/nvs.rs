@@ -159,7 +159,8 @@ impl NvsState {
                     init::visual_hull_points(&images.cameras, &rgba_views(images), cfg.init_points, 0.5, cfg.seed);
                 if points.is_empty() {
                     anyhow::bail!(
-                        "{}: no point of the scene box lies inside every training mask; are the alpha channels empty?",
+                        "{}: no point of the scene box lies inside every training mask; are the alpha channels empty, \
+                         or do the cameras (transform_matrix, camera_angle_x) not look at the object?",
                         dataset.root.display()
                     );
                 }

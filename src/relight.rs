@@ -299,8 +299,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     }
     // The relit run is a new folder (or a previous relit run): never the trained run it
     // comes from, nor another trained run, whose checkpoints would then describe other files.
-    let same = |a: &Path, b: &Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(a), Ok(b)) if a == b);
-    if same(&args.out, run) {
+    if crate::io::same_path(&args.out, run) {
         anyhow::bail!("--out {}: is the run being relit; write the relit run to another folder", args.out.display());
     }
     if let Some(f) = ["checkpoint.bin", "checkpoint_init.bin", "checkpoint_inverse.bin"]

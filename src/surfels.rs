@@ -210,10 +210,19 @@ impl Surfels {
         if lens.iter().any(|&l| l != n) {
             return Err(Error::invalid("surfels", format!("array lengths differ: {n} means vs {lens:?}")));
         }
-        // The first surfel with a non-finite value, and which parameter it is in.
+        if let Some((i, name)) = self.first_non_finite() {
+            return Err(Error::invalid("surfels", format!("surfel {i}: {name} is NaN or infinite")));
+        }
+        Ok(())
+    }
+
+    /// The first surfel holding a NaN or infinite value, and the parameter it is in (the
+    /// field's name: `means`, `log_scales`, `quats`, `opacity_logits`, `sh`, `albedo_logits`,
+    /// `roughness_logits`). Arrays must have equal lengths.
+    pub fn first_non_finite(&self) -> Option<(usize, &'static str)> {
         let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
-        for i in 0..n {
-            let params: [(&str, bool); 7] = [
+        (0..self.len()).find_map(|i| {
+            let params: [(&'static str, bool); 7] = [
                 ("means", finite(&self.means[i])),
                 ("log_scales", finite(&self.log_scales[i])),
                 ("quats", finite(&self.quats[i])),
@@ -222,11 +231,8 @@ impl Surfels {
                 ("albedo_logits", finite(&self.albedo_logits[i])),
                 ("roughness_logits", self.roughness_logits[i].is_finite()),
             ];
-            if let Some((name, _)) = params.iter().find(|p| !p.1) {
-                return Err(Error::invalid("surfels", format!("surfel {i}: {name} is NaN or infinite")));
-            }
-        }
-        Ok(())
+            params.iter().find(|p| !p.1).map(|p| (i, p.0))
+        })
     }
 
     /// Axis-aligned bounds of the centres (min, max); None when empty.

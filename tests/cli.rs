@@ -227,9 +227,13 @@ fn a_trained_run_is_not_replaced_without_overwrite() {
     let (code, _, err) = train(&["--overwrite", "--iters", "3"]);
     assert_eq!(code, 0, "{err}");
     assert!(!out.join("envmap.exr").exists(), "--overwrite leaves no stale inverse outputs");
-    let (code, _, err) = radiogs(&["train", "--data", data_s, "--out", data_s, "--iters", "2"]);
-    assert_eq!(code, 1, "{err}");
-    assert!(err.contains("dataset folder"), "{err}");
+    for extra in [None, Some("--overwrite")] {
+        let mut args = vec!["train", "--data", data_s, "--out", data_s, "--iters", "2"];
+        args.extend(extra);
+        let (code, _, err) = radiogs(&args);
+        assert_eq!(code, 1, "{extra:?}: {err}");
+        assert!(err.contains("dataset folder"), "{err}");
+    }
 }
 
 /// A bad initial light or initial surfel file stops training before the run folder is made

@@ -264,23 +264,18 @@ pub fn read_ply(path: &Path) -> Result<Surfels> {
         });
     }
     // Every field must be finite: a NaN colour or material renders and trains as silently as
-    // a NaN position would not.
-    for i in 0..s.len() {
-        let bad = |v: &[f32]| v.iter().position(|x| !x.is_finite());
-        let sh = s.sh[i].as_flattened();
-        let fields: [(&str, Option<usize>); 8] = [
-            ("x, y, z", bad(&s.means[i])),
-            ("scale_0..1", bad(&s.log_scales[i])),
-            ("rot_0..3", bad(&s.quats[i])),
-            ("opacity", bad(&[s.opacity_logits[i]])),
-            ("f_dc_0..2", bad(&sh[..3])),
-            ("f_rest", bad(&sh[3..])),
-            ("albedo_0..2", bad(&s.albedo_logits[i])),
-            ("roughness", bad(&[s.roughness_logits[i]])),
-        ];
-        if let Some((name, _)) = fields.iter().find(|f| f.1.is_some()) {
-            return Err(Error::format(path, format!("surfel {i}: {name}"), "a value is NaN or infinite"));
-        }
+    // a NaN position would not. Named by the PLY's properties.
+    if let Some((i, field)) = s.first_non_finite() {
+        let name = match field {
+            "means" => "x, y, z",
+            "log_scales" => "scale_0..1",
+            "quats" => "rot_0..3",
+            "opacity_logits" => "opacity",
+            "sh" => "f_dc_0..2 / f_rest_*",
+            "albedo_logits" => "albedo_0..2",
+            _ => "roughness",
+        };
+        return Err(Error::format(path, format!("surfel {i}: {name}"), "a value is NaN or infinite"));
     }
     if let Some(i) = (0..s.len()).find(|&i| s.quats[i].iter().all(|v| *v == 0.0)) {
         return Err(Error::format(path, format!("surfel {i}: rot_0..3"), "the quaternion is zero"));

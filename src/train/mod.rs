@@ -34,6 +34,13 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     {
         crate::io::ply::read_ply(path)?;
     }
+    if crate::io::same_path(&cfg.out, &cfg.data) {
+        return Err(crate::Error::invalid(
+            format!("--out {}", cfg.out.display()),
+            "is the dataset folder; write the run somewhere else",
+        )
+        .into());
+    }
     if !cfg.resume && !cfg.overwrite {
         refuse_trained_run(cfg)?;
     }
@@ -111,16 +118,9 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
 /// one as the new stages write theirs; if the new run then fails, the folder mixes both. So
 /// without `--overwrite` such a folder is refused before anything is written: the geometry
 /// stages refuse any trained run's files, the inverse stage (which starts from the folder's
-/// geometry checkpoint) only a previous inverse stage's. The dataset folder itself is never a run.
+/// geometry checkpoint) only a previous inverse stage's.
 fn refuse_trained_run(cfg: &TrainConfig) -> crate::Result<()> {
     let out = &cfg.out;
-    let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(a), Ok(b)) if a == b);
-    if same(out, &cfg.data) {
-        return Err(crate::Error::invalid(
-            format!("--out {}", out.display()),
-            "is the dataset folder; write the run somewhere else",
-        ));
-    }
     let trained: &[&str] = match cfg.stage {
         Stage::Inverse => &["checkpoint_inverse.bin", "envmap.exr"],
         _ => &["checkpoint.bin", "checkpoint_init.bin", "checkpoint_inverse.bin", "point_cloud.ply", "envmap.exr"],
@@ -141,11 +141,7 @@ fn refuse_trained_run(cfg: &TrainConfig) -> crate::Result<()> {
 /// (or not the resolution) the run was trained on. Datasets move, so this does not refuse.
 fn warn_on_changed_data(cfg: &TrainConfig) {
     let Ok(saved) = crate::eval::load_run_config(&cfg.out) else { return };
-    let same = |a: &std::path::Path, b: &std::path::Path| match (a.canonicalize(), b.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => a == b,
-    };
-    if !same(&saved.data, &cfg.data) || saved.resolution != cfg.resolution {
+    if !crate::io::same_path(&saved.data, &cfg.data) || saved.resolution != cfg.resolution {
         eprintln!(
             "warning: {} was trained on {} at -r {}; resuming on {} at -r {}",
             cfg.out.display(),

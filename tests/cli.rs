@@ -370,3 +370,44 @@ fn doubtful_env_maps_and_camera_conventions_are_warned_about() {
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("train_000/metadata.json: convention: \"opencv\" is not understood and is ignored"), "{err}");
 }
+
+/// Legal inputs that are almost surely slips are warned about when training starts: views
+/// shrunk below 16 px by `-r`, and training images without transparency (the whole frame would
+/// count as the object).
+#[test]
+fn slips_in_training_data_are_warned_about() {
+    let dir = temp_dir("slips");
+    let data = tiny_dataset(&dir);
+    let train = |out: &str, extra: &[&str]| {
+        let out = dir.join(out);
+        let mut args = vec!["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        args.extend_from_slice(&["--stage", "nvs", "--iters", "1"]);
+        args.extend_from_slice(extra);
+        let (code, _, err) = radiogs(&args);
+        assert_eq!(code, 0, "{err}");
+        err
+    };
+    let err = train("plain", &[]);
+    assert!(!err.contains("shrinks views") && !err.contains("opaque"), "{err}");
+    let err = train("shrunk", &["-r", "2"]);
+    assert!(err.contains("-r 2 shrinks views to 8 px"), "{err}");
+    // The first training image as RGB without alpha.
+    let first = data.join("train_000/rgba.png");
+    let rgba = radiogs::io::image::read_rgba(&first).unwrap();
+    radiogs::io::image::write_image(&first, &rgba.take_channels(3)).unwrap();
+    let err = train("opaque", &[]);
+    assert!(err.contains("train_000/rgba.png: every pixel is opaque"), "{err}");
+}
+
+/// Benchmarks take at least one repetition (`--repeats 0` used to be read as 1).
+#[test]
+fn zero_repeats_are_refused() {
+    for bench in [&["raster", "--quick"][..], &["relight", "--run", "/nonexistent/run"], &["trace"]] {
+        let mut args = vec!["bench"];
+        args.extend_from_slice(bench);
+        args.extend_from_slice(&["--repeats", "0"]);
+        let (code, _, err) = radiogs(&args);
+        assert_ne!(code, 0, "{err}");
+        assert!(err.contains("--repeats") && err.contains("1..="), "{args:?}: {err}");
+    }
+}

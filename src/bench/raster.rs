@@ -23,7 +23,7 @@ use std::time::Instant;
 #[derive(clap::Args, Debug, Clone)]
 pub struct RasterBenchArgs {
     /// Timed repetitions per case (the fastest is reported).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
     pub repeats: usize,
     /// Only the small scene (10k surfels at 256²).
     #[arg(long)]
@@ -178,7 +178,7 @@ pub fn run(args: &RasterBenchArgs) -> anyhow::Result<()> {
             let mut sort = (0.0, 0.0);
             let mut record = raster::PixelHitRecord::default();
             let (mut record_mib, mut rows_over) = (0.0, 0);
-            for rep in 0..args.repeats.max(1) {
+            for rep in 0..args.repeats {
                 let c0 = cpu_seconds();
                 let t0 = Instant::now();
                 let (out, st) = raster::render(&s, &cam, &set, None);
@@ -221,8 +221,8 @@ pub fn run(args: &RasterBenchArgs) -> anyhow::Result<()> {
             }
             let line = serde_json::json!({
                 "bench": "raster", "scene": if train { "train" } else { "random" }, "surfels": n,
-                "forward_cpu_s_mean": cpu_f / args.repeats.max(1) as f64,
-                "forward_backward_cpu_s_mean": (cpu_f + cpu_b) / args.repeats.max(1) as f64, "res": res, "k": k,
+                "forward_cpu_s_mean": cpu_f / args.repeats as f64,
+                "forward_backward_cpu_s_mean": (cpu_f + cpu_b) / args.repeats as f64, "res": res, "k": k,
                 "forward_s": best_f, "forward_backward_s": best_fb, "evaluations": evals,
                 "evaluations_performed": evals_done,
                 "forward_evals_per_s": evals as f64 / best_f, "fb_evals_per_s": evals as f64 / best_fb,
@@ -239,8 +239,8 @@ pub fn run(args: &RasterBenchArgs) -> anyhow::Result<()> {
                 evals as f64 / best_f / 1e6,
                 best_fb * 1e3,
                 evals as f64 / best_fb / 1e6,
-                cpu_f / args.repeats.max(1) as f64 * 1e3,
-                (cpu_f + cpu_b) / args.repeats.max(1) as f64 * 1e3,
+                cpu_f / args.repeats as f64 * 1e3,
+                (cpu_f + cpu_b) / args.repeats as f64 * 1e3,
                 evals,
                 evals_done,
                 sort.0,

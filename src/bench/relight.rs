@@ -17,7 +17,7 @@ pub struct RelightBenchArgs {
     #[arg(long, value_delimiter = ',', default_values_t = vec![200u32, 400, 800])]
     pub sizes: Vec<u32>,
     /// Frames per size (the median is reported).
-    #[arg(long, default_value_t = 7)]
+    #[arg(long, default_value_t = 7, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
     pub repeats: usize,
     /// Only the rasterised frames (skip the traced set-up; for profiling).
     #[arg(long)]
@@ -79,7 +79,7 @@ pub fn run(args: &RelightBenchArgs) -> anyhow::Result<()> {
     let Some(view) = dataset.test.first().or(dataset.train.first()) else {
         anyhow::bail!("{}: the run's dataset has no views", cfg.data.display());
     };
-    let repeats = args.repeats.max(1);
+    let repeats = args.repeats;
     if !(0.0..1.0).contains(&args.display_stop) {
         anyhow::bail!("--display-stop {}: must be in [0, 1)", args.display_stop);
     }

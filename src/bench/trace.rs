@@ -34,7 +34,7 @@ pub struct TraceBenchArgs {
     #[arg(long, conflicts_with = "scene")]
     pub ply: Option<PathBuf>,
     /// Timed repetitions of the forward (the backward and build take fewer); the median counts.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 5, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
     pub repeats: usize,
     /// Hits gathered per traversal (TraceSettings::chunk).
     #[arg(long, default_value_t = TraceSettings::default().chunk)]
@@ -193,7 +193,7 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
         (None, SceneChoice::Both) => vec![("surface", scene("surface", 7)), ("volume", scene("volume", 7))],
     };
     anyhow::ensure!(scenes.iter().all(|(_, s)| !s.is_empty()), "bench trace: the scene has no surfels");
-    let reps = args.repeats.max(1);
+    let reps = args.repeats;
     println!(
         "radiogs bench trace: {} threads, {} surfels, 2048 × 64 hemisphere rays from surfel centres",
         rayon::current_num_threads(),
@@ -235,7 +235,14 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
             std::hint::black_box(hits);
         });
         let th = rayon::current_num_threads() as f64;
-        let rate = |t: (f64, f64)| (nr / t.0 / 1e6, nr / (t.1 / th) / 1e6);
+        // M rays/s, wall and CPU-time estimate; a time below the clock's resolution (tiny
+        // scenes: CPU time counts in ticks) has no rate.
+        let rate = |t: (f64, f64)| {
+            let show = |secs: f64| {
+                if secs > 0.0 { format!("{:8.3} M rays/s", nr / secs / 1e6) } else { format!("{:>17}", "(too short)") }
+            };
+            (show(t.0), show(t.1 / th))
+        };
         let fb = (fwd.0 + bwd.0, fwd.1 + bwd.1);
         println!(
             "{kind}: {} nodes, mean alpha {mean_alpha:.3}, rays reaching T < {}: {:.1}%",
@@ -247,22 +254,19 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
         println!("  build            {:8.1} ms | {:8.1} ms", build.0 * 1e3, build.1 / th * 1e3);
         println!("  refit            {:8.2} ms | {:8.2} ms", refit.0 * 1e3, refit.1 / th * 1e3);
         let f = rate(fwd);
-        println!("  forward          {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        println!("  forward          {} | {}", f.0, f.1);
         let f = rate(fb);
-        println!("  forward+backward {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        println!("  forward+backward {} | {}", f.0, f.1);
         let f = rate(bwd);
-        println!("  backward alone   {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        println!("  backward alone   {} | {}", f.0, f.1);
         let f = rate((fwd_rec.0 + bwd_rec.0, fwd_rec.1 + bwd_rec.1));
-        println!("  recorded fwd+bwd {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        println!("  recorded fwd+bwd {} | {}", f.0, f.1);
         let f = rate(bwd_rec);
-        println!("  replayed bwd     {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
+        println!("  replayed bwd     {} | {}", f.0, f.1);
         let f = rate(closest);
-        println!("  closest-hit      {:8.3} M rays/s | {:8.3} M rays/s", f.0, f.1);
-        println!(
-            "  forward / closest-hit time: {:.2}x (wall) {:.2}x (CPU)",
-            fwd.0 / closest.0,
-            fwd.1 / closest.1.max(1e-9)
-        );
+        println!("  closest-hit      {} | {}", f.0, f.1);
+        let ratio = |a: f64, b: f64| if b > 0.0 { format!("{:.2}x", a / b) } else { "(too short)".to_string() };
+        println!("  forward / closest-hit time: {} (wall) {} (CPU)", ratio(fwd.0, closest.0), ratio(fwd.1, closest.1));
     }
     Ok(())
 }

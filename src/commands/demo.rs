@@ -75,6 +75,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     cfg.validate()?;
     if !data.join("transforms_train.json").is_file() {
         use clap::Parser;
+        // synth refuses a folder that holds files; say it in the demo's terms.
+        if std::fs::read_dir(&data).is_ok_and(|mut d| d.next().is_some()) {
+            anyhow::bail!(
+                "{}: holds files but no dataset (no transforms_train.json); remove it, or give the demo another --out",
+                data.display()
+            );
+        }
         let synth = SynthWrapper::try_parse_from([
             "synth",
             "--scene",

@@ -576,10 +576,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     // are written: an evaluation that fails half-way (a bad file among the test passes) leaves
     // the previous one whole.
     let final_dir = args.run.join("eval");
-    let out_dir = args.run.join("eval.partial");
-    let _ = std::fs::remove_dir_all(&out_dir);
-    std::fs::create_dir_all(&out_dir).map_err(|e| crate::Error::io(&out_dir, e))?;
-    let mut partial = PartialDir(Some(out_dir.clone()));
+    let partial = crate::io::atomic::PartialDir::beside(&final_dir)?;
+    let out_dir = partial.path().to_path_buf();
     let bg = [1.0f32; 3];
     let settings = RasterSettings {
         window: cfg.window,
@@ -758,28 +756,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     println!("{}", serde_json::to_string_pretty(&summary["mean"])?);
     eprintln!("metrics → {}", path.display());
     Ok(())
-}
-
-/// An output folder being filled: removed when dropped (the command failed), unless
-/// [`publish`](Self::publish)ed in place of the folder it replaces.
-struct PartialDir(Option<std::path::PathBuf>);
-
-impl PartialDir {
-    fn publish(&mut self, to: &Path) -> crate::Result<()> {
-        let Some(from) = self.0.take() else { return Ok(()) };
-        if to.exists() {
-            std::fs::remove_dir_all(to).map_err(|e| crate::Error::io(to, e))?;
-        }
-        std::fs::rename(&from, to).map_err(|e| crate::Error::io(to, e))
-    }
-}
-
-impl Drop for PartialDir {
-    fn drop(&mut self) {
-        if let Some(dir) = self.0.take() {
-            let _ = std::fs::remove_dir_all(dir);
-        }
-    }
 }
 
 #[cfg(test)]

@@ -74,6 +74,50 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes))
 }
 
+/// An output folder filled beside the one it will replace (`<target>.partial`), so a command
+/// that fails half-way leaves the previous folder whole: removed when dropped, unless
+/// [`publish`](Self::publish)ed in place of its target.
+pub struct PartialDir(Option<PathBuf>);
+
+impl PartialDir {
+    /// A fresh, empty `<target>.partial` (what a failed run left there is removed first).
+    pub fn beside(target: &Path) -> Result<Self> {
+        let Some(name) = target.file_name() else {
+            return Err(Error::invalid(target.display().to_string(), "must name a folder (not `.`, `..` or `/`)"));
+        };
+        let mut partial_name = name.to_os_string();
+        partial_name.push(".partial");
+        let dir = target.with_file_name(partial_name);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        }
+        std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        Ok(PartialDir(Some(dir)))
+    }
+
+    /// The folder being filled.
+    pub fn path(&self) -> &Path {
+        self.0.as_deref().expect("a PartialDir is used only until published")
+    }
+
+    /// Replace `to` (if it exists) with the filled folder.
+    pub fn publish(mut self, to: &Path) -> Result<()> {
+        let Some(from) = self.0.take() else { return Ok(()) };
+        if to.exists() {
+            std::fs::remove_dir_all(to).map_err(|e| Error::io(to, e))?;
+        }
+        std::fs::rename(&from, to).map_err(|e| Error::io(to, e))
+    }
+}
+
+impl Drop for PartialDir {
+    fn drop(&mut self) {
+        if let Some(dir) = self.0.take() {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -103,6 +147,31 @@ mod tests {
         assert!(dir.join("sub").is_dir());
         let err = write_atomic(Path::new("/dev/null"), b"x").unwrap_err().to_string();
         assert!(err.contains("/dev/null") && err.contains("not a regular file"), "{err}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A partial folder is removed when dropped and replaces its target (and only then) when
+    /// published.
+    #[test]
+    fn a_partial_folder_replaces_its_target_only_when_published() {
+        let dir = std::env::temp_dir().join(format!("radiogs-partial-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let target = dir.join("out");
+        std::fs::create_dir_all(&target).unwrap();
+        std::fs::write(target.join("old.txt"), "old").unwrap();
+        {
+            let p = PartialDir::beside(&target).unwrap();
+            assert_eq!(p.path(), dir.join("out.partial"));
+            std::fs::write(p.path().join("new.txt"), "new").unwrap();
+        }
+        assert!(!dir.join("out.partial").exists());
+        assert_eq!(std::fs::read_to_string(target.join("old.txt")).unwrap(), "old");
+        let p = PartialDir::beside(&target).unwrap();
+        std::fs::write(p.path().join("new.txt"), "new").unwrap();
+        p.publish(&target).unwrap();
+        assert!(!target.join("old.txt").exists() && target.join("new.txt").is_file());
+        assert!(!dir.join("out.partial").exists());
+        assert!(PartialDir::beside(Path::new("/")).is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -243,6 +243,9 @@ impl Dataset {
         Ok(Dataset { root: root.to_path_buf(), layout, train, test, envmaps, train_env })
     }
 
+    /// Below this many pixels on a side a downscaled view is warned about.
+    pub const MIN_USEFUL_SIDE: u32 = 16;
+
     /// Open a dataset whose images load shrunk by `factor` (3DGS/2DGS's `-r 2|4|8`): cameras
     /// scaled to match, files checked at their stored size.
     pub fn open_downscaled(root: &Path, factor: u32) -> Result<Dataset> {
@@ -260,6 +263,17 @@ impl Dataset {
             }
             view.camera = view.camera.downscaled(factor);
             view.downscale = factor;
+        }
+        // Legal but almost surely a slip (e.g. `-r 16` on small images): say so once.
+        if factor > 1 {
+            let smallest = ds.train.iter().chain(&ds.test).map(|v| v.camera.width.min(v.camera.height)).min();
+            if let Some(side) = smallest.filter(|&side| side < Self::MIN_USEFUL_SIDE) {
+                tracing::warn!(
+                    "{}: -r {factor} shrinks views to {side} px on a side (fewer than {}): little to train or evaluate on",
+                    root.display(),
+                    Self::MIN_USEFUL_SIDE
+                );
+            }
         }
         Ok(ds)
     }
@@ -303,6 +317,7 @@ impl Dataset {
         let res = self
             .train
             .first()
+            .or(self.test.first())
             .map(|v| {
                 let shrunk = if v.downscale > 1 {
                     format!(" (files {}×{} shrunk {}×)", v.file_size.0, v.file_size.1, v.downscale)
@@ -311,7 +326,7 @@ impl Dataset {
                 };
                 format!("{}×{}{shrunk}", v.camera.width, v.camera.height)
             })
-            .unwrap_or_default();
+            .unwrap_or_else(|| "no size (no views)".to_string());
         let passes: Vec<&str> = self.passes_found().iter().map(|p| p.name()).collect();
         let relit = self.relit_found();
         let envs: Vec<&str> = self.envmaps.iter().map(|(n, _)| n.as_str()).collect();
@@ -615,6 +630,15 @@ mod tests {
         let views = read_transforms(&dir, &json).unwrap();
         let names: Vec<&str> = views.iter().map(|v| v.camera.name.as_str()).collect();
         assert_eq!(names, ["a_rgba", "b_rgba", "002_x_rgba", "003_x_rgba", "r_7"]);
+    }
+
+    /// A dataset without views says so in its summary (the size used to be left blank).
+    #[test]
+    fn summary_of_a_dataset_without_views() {
+        let dir = temp_dir("noviews");
+        std::fs::write(dir.join("transforms_train.json"), r#"{"camera_angle_x": 0.5, "frames": []}"#).unwrap();
+        let summary = Dataset::open(&dir).unwrap().summary();
+        assert!(summary.contains("0 train / 0 test views at no size (no views)"), "{summary}");
     }
 
     #[test]

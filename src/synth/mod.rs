@@ -71,6 +71,11 @@ pub struct SynthArgs {
     #[arg(long)]
     #[serde(default)]
     pub test_cameras: Option<PathBuf>,
+    /// Replace `--out` if it already holds files (without it such a folder is refused: a new
+    /// dataset over an old one would keep the old one's extra views).
+    #[arg(long)]
+    #[serde(default)]
+    pub overwrite: bool,
 }
 
 /// The test cameras of `--test-cameras`, scaled to `res` × `res` and named `test_XXX`.
@@ -121,6 +126,7 @@ impl SynthArgs {
             bench: false,
             env_width: 512,
             test_cameras: None,
+            overwrite: false,
         }
     }
 }
@@ -193,8 +199,20 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             anyhow::bail!("--relight-envs/--train-env: unknown env '{name}' (built-ins: {})", PROCEDURAL.join(", "));
         }
     }
-    let out = &args.out;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // The dataset is written beside `--out` and moved there whole at the end: a synthesis that
+    // fails or is stopped half-way leaves no half-written dataset (nor a mix of two).
+    let holds_files = std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(args.out.exists());
+    if holds_files && !args.overwrite {
+        anyhow::bail!(
+            "--out {}: exists and is not empty; pass --overwrite to replace it, or name a new folder",
+            args.out.display()
+        );
+    }
+    if args.out.exists() && !args.out.is_dir() {
+        anyhow::bail!("--out {}: exists and is not a folder", args.out.display());
+    }
+    let partial = crate::io::atomic::PartialDir::beside(&args.out).context("--out")?;
+    let out = partial.path();
 
     // Lights.
     let mut env_files = serde_json::Map::new();
@@ -357,7 +375,8 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         "test_pass_stats": stats,
     });
     dataset::write_json(&out.join("README.json"), &readme)?;
-    eprintln!("synth: wrote {} in {:.1} s", out.display(), t0.elapsed().as_secs_f64());
+    partial.publish(&args.out)?;
+    eprintln!("synth: wrote {} in {:.1} s", args.out.display(), t0.elapsed().as_secs_f64());
     Ok(())
 }
 
@@ -439,6 +458,8 @@ mod tests {
         }
         let err = run(&SynthArgs { test_cameras: Some(base.join("missing")), ..tiny(base.join("bad")) }).unwrap_err();
         assert!(format!("{err:#}").contains("--test-cameras"), "{err:#}");
+        // A synthesis that fails after it began writing leaves nothing behind.
+        assert!(!base.join("bad").exists() && !base.join("bad.partial").exists());
         std::fs::remove_dir_all(&base).unwrap();
     }
 
@@ -489,6 +510,30 @@ mod tests {
         assert_eq!(meta["imw"], 16);
         assert_eq!(meta["envmap"], "sky");
         std::fs::remove_dir_all(&base).unwrap();
+    }
+
+    /// A folder that holds files is refused without `--overwrite` (and left as it was); with it
+    /// the new dataset replaces the old one whole, so no view of the old one survives.
+    #[test]
+    fn an_existing_dataset_is_replaced_only_with_overwrite() {
+        let out = std::env::temp_dir().join(format!("radiogs-synth-over-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        run(&SynthArgs { test_views: 2, ..tiny(out.clone()) }).unwrap();
+        let before = std::fs::read(out.join("transforms_test.json")).unwrap();
+        let err = run(&SynthArgs { test_views: 1, ..tiny(out.clone()) }).unwrap_err().to_string();
+        assert!(err.contains("--overwrite") && err.contains("not empty"), "{err}");
+        assert_eq!(std::fs::read(out.join("transforms_test.json")).unwrap(), before);
+        run(&SynthArgs { test_views: 1, overwrite: true, ..tiny(out.clone()) }).unwrap();
+        assert!(out.join("test_000").is_dir() && !out.join("test_001").exists());
+        assert!(!out.with_file_name(format!("radiogs-synth-over-{}.partial", std::process::id())).exists());
+        // An empty folder is fine without the flag (made beforehand, as scripts do).
+        let empty = out.join("empty");
+        std::fs::create_dir_all(&empty).unwrap();
+        let err = run(&SynthArgs { train_views: 1, ..tiny(out.clone()) }).unwrap_err().to_string();
+        assert!(err.contains("not empty"), "{err}");
+        run(&SynthArgs { train_views: 1, ..tiny(empty.clone()) }).unwrap();
+        assert!(empty.join("transforms_train.json").is_file());
+        std::fs::remove_dir_all(&out).unwrap();
     }
 
     #[test]

@@ -17,6 +17,23 @@ pub mod pbr_init;
 use crate::io::dataset::{Dataset, Split};
 use config::{Stage, TrainConfig};
 
+/// Training reads the object's silhouette from the images' alpha. A first training image that
+/// is opaque everywhere (RGB without alpha, or a baked background) makes the whole frame the
+/// object: legal, rarely meant, so said once.
+fn warn_if_opaque(dataset: &Dataset) -> crate::Result<()> {
+    if let Some(view) = dataset.views(Split::Train).first() {
+        let img = view.load_image()?;
+        if img.data.chunks_exact(4).all(|px| px[3] >= 1.0) {
+            tracing::warn!(
+                "{}: every pixel is opaque (no alpha channel, or alpha 1 everywhere): the whole frame counts as the \
+                 object; radiogs expects RGBA images with a transparent background, as the NeRF-synthetic scenes have",
+                view.image_path.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// `radiogs train`: validate, write `RUN/config.toml`, run the requested stage(s).
 pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     cfg.validate()?;
@@ -24,6 +41,7 @@ pub fn run(cfg: &TrainConfig) -> anyhow::Result<()> {
     // A truncated or corrupt training image stops here, before anything is written (the
     // stages read the images again; a decode costs little beside an iteration).
     dataset.check_images(Split::Train)?;
+    warn_if_opaque(&dataset)?;
     // Inputs the stages read later are read once here too, so that a bad file stops the run
     // before anything is written (an --env-init-map used to fail after the whole nvs stage).
     if let Some(path) = &cfg.env_init_map {

@@ -71,11 +71,29 @@ pub struct SynthArgs {
     #[arg(long)]
     #[serde(default)]
     pub test_cameras: Option<PathBuf>,
+    /// The cameras' elevation band in degrees, `MIN,MAX` (default: the scene's, 14–79° for
+    /// spheres); e.g. `45,80` for a capture from above only.
+    #[arg(long, value_delimiter = ',', num_args = 1, allow_hyphen_values = true)]
+    #[serde(default)]
+    pub elevation: Option<Vec<f32>>,
+    /// The cameras' azimuth range in degrees, `MIN,MAX` (default: the whole circle, −180,180);
+    /// e.g. `-90,90` for a half orbit.
+    #[arg(long, value_delimiter = ',', num_args = 1, allow_hyphen_values = true)]
+    #[serde(default)]
+    pub azimuth: Option<Vec<f32>>,
     /// Replace `--out` if it already holds files (without it such a folder is refused: a new
     /// dataset over an old one would keep the old one's extra views).
     #[arg(long)]
     #[serde(default)]
     pub overwrite: bool,
+}
+
+/// A `MIN,MAX` range of degrees within [lo, hi], MIN < MAX.
+fn degree_range(flag: &str, range: &[f32], lo: f32, hi: f32) -> anyhow::Result<(f32, f32)> {
+    match *range {
+        [a, b] if a.is_finite() && b.is_finite() && lo <= a && a < b && b <= hi => Ok((a, b)),
+        _ => anyhow::bail!("{flag} {range:?}: give MIN,MAX in degrees, MIN < MAX, both within {lo}..={hi}"),
+    }
 }
 
 /// The test cameras of `--test-cameras`, scaled to `res` × `res` and named `test_XXX`.
@@ -126,6 +144,8 @@ impl SynthArgs {
             bench: false,
             env_width: 512,
             test_cameras: None,
+            elevation: None,
+            azimuth: None,
             overwrite: false,
         }
     }
@@ -171,9 +191,21 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         return run_bench(args);
     }
     let t0 = Instant::now();
-    let scene = scene::build(&args.scene).with_context(|| {
+    let mut scene = scene::build(&args.scene).with_context(|| {
         format!("--scene: unknown scene '{}' (built-ins: {})", args.scene, scene::SCENES.join(", "))
     })?;
+    if let Some(range) = &args.elevation {
+        (scene.rig.elev_min, scene.rig.elev_max) = degree_range("--elevation", range, -89.0, 89.0)?;
+    }
+    if let Some(range) = &args.azimuth {
+        (scene.rig.az_min, scene.rig.az_max) = degree_range("--azimuth", range, -360.0, 360.0)?;
+        anyhow::ensure!(
+            scene.rig.az_max - scene.rig.az_min <= 360.0,
+            "--azimuth {},{}: the range spans more than 360°",
+            scene.rig.az_min,
+            scene.rig.az_max
+        );
+    }
     anyhow::ensure!((8..=4096).contains(&args.res), "--res {} is out of range [8, 4096]", args.res);
     anyhow::ensure!(args.spp >= 1 && args.max_bounces >= 1, "--spp and --max-bounces must be ≥ 1");
     anyhow::ensure!(
@@ -509,6 +541,49 @@ mod tests {
         }
         assert_eq!(meta["imw"], 16);
         assert_eq!(meta["envmap"], "sky");
+        std::fs::remove_dir_all(&base).unwrap();
+    }
+
+    /// `--elevation` and `--azimuth` set the band every camera lies in; bad ranges are refused
+    /// before anything is written.
+    #[test]
+    fn camera_band_flags_bound_every_camera() {
+        let base = std::env::temp_dir().join(format!("radiogs-synth-band-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let out = base.join("band");
+        let args = SynthArgs {
+            train_views: 6,
+            test_views: 3,
+            elevation: Some(vec![45.0, 80.0]),
+            azimuth: Some(vec![-90.0, 30.0]),
+            ..tiny(out.clone())
+        };
+        run(&args).unwrap();
+        for split in ["train", "test"] {
+            let tr: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(out.join(format!("transforms_{split}.json"))).unwrap()).unwrap();
+            for f in tr["frames"].as_array().unwrap() {
+                let m = &f["transform_matrix"];
+                let eye = [0, 1, 2].map(|r| m[r][3].as_f64().unwrap());
+                // The spheres scene's band is centred on (0, 0, target_z) at radius 4.
+                let elev = ((eye[2] - scene::build("spheres").unwrap().rig.target.z as f64) / 4.0).asin().to_degrees();
+                let az = eye[1].atan2(eye[0]).to_degrees();
+                assert!((45.0 - 1e-3..=80.0 + 1e-3).contains(&elev), "{split}: elevation {elev}");
+                assert!((-90.0 - 1e-3..=30.0 + 1e-3).contains(&az), "{split}: azimuth {az}");
+            }
+        }
+        for (elevation, azimuth, says) in [
+            (Some(vec![80.0, 45.0]), None, "--elevation"),
+            (Some(vec![0.0, 95.0]), None, "--elevation"),
+            (Some(vec![10.0]), None, "--elevation"),
+            (None, Some(vec![-180.0, 200.0]), "--azimuth"),
+            (None, Some(vec![f32::NAN, 20.0]), "--azimuth"),
+        ] {
+            let bad = base.join("bad");
+            let err = run(&SynthArgs { elevation, azimuth, ..tiny(bad.clone()) }).unwrap_err().to_string();
+            assert!(err.contains(says), "{err}");
+            assert!(!bad.exists() && !base.join("bad.partial").exists());
+        }
         std::fs::remove_dir_all(&base).unwrap();
     }
 

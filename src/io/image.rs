@@ -196,9 +196,17 @@ fn check_png_size(path: &Path, info: &png::Info, file_len: usize) -> Result<()> 
 /// A PNG decoder past the header, set to expand palettes, grey below 8 bits and tRNS to plain
 /// 8- or 16-bit samples. No gamma, sRGB or ICC conversion: values are read as stored.
 fn png_reader<'a>(path: &Path, bytes: &'a [u8]) -> Result<png::Reader<std::io::Cursor<&'a [u8]>>> {
+    png_reader_with(path, bytes, png::Transformations::EXPAND)
+}
+
+fn png_reader_with<'a>(
+    path: &Path,
+    bytes: &'a [u8],
+    transformations: png::Transformations,
+) -> Result<png::Reader<std::io::Cursor<&'a [u8]>>> {
     let limits = png::Limits { bytes: PNG_DECODER_LIMIT };
     let mut decoder = png::Decoder::new_with_limits(std::io::Cursor::new(bytes), limits);
-    decoder.set_transformations(png::Transformations::EXPAND);
+    decoder.set_transformations(transformations);
     let info = decoder.read_header_info().map_err(|e| png_error(path, "PNG header", e))?;
     check_png_size(path, info, bytes.len())?;
     decoder.read_info().map_err(|e| png_error(path, "image data", e))
@@ -217,6 +225,9 @@ struct DecodedPng {
 /// Decode the first (or only) frame of a PNG.
 fn decode_png(path: &Path, bytes: &[u8]) -> Result<DecodedPng> {
     let mut reader = png_reader(path, bytes)?;
+    if reader.info().color_type == png::ColorType::Indexed {
+        check_palette_indices(path, bytes)?;
+    }
     let size = reader.output_buffer_size();
     let size = size.ok_or_else(|| png_error(path, "image data", png::DecodingError::LimitsExceeded))?;
     let mut data = vec![0; size];
@@ -228,6 +239,40 @@ fn decode_png(path: &Path, bytes: &[u8]) -> Result<DecodedPng> {
     };
     let (width, height) = (frame.width, frame.height);
     Ok(DecodedPng { width, height, samples: frame.color_type.samples(), sixteen_bit, data })
+}
+
+/// A palette image's indices all name a palette entry. The decoder's expansion turns an index
+/// past the palette's end into black without a word; the PNG specification calls it an error.
+/// Costs a second decode, of palette images only, and only when the palette has fewer entries
+/// than the bit depth can index.
+fn check_palette_indices(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut reader = png_reader_with(path, bytes, png::Transformations::IDENTITY)?;
+    let info = reader.info();
+    let entries = info.palette.as_ref().map_or(0, |p| p.len() / 3);
+    let depth = info.bit_depth as usize;
+    if entries >= 1 << depth {
+        return Ok(());
+    }
+    let size = reader.output_buffer_size();
+    let size = size.ok_or_else(|| png_error(path, "image data", png::DecodingError::LimitsExceeded))?;
+    let mut data = vec![0; size];
+    let frame = reader.next_frame(&mut data).map_err(|e| png_error(path, "image data", e))?;
+    let (per_byte, mask) = (8 / depth, ((1u16 << depth) - 1) as u8);
+    for y in 0..frame.height as usize {
+        let row = &data[y * frame.line_size..];
+        for x in 0..frame.width as usize {
+            let shift = 8 - depth * (x % per_byte + 1);
+            let index = (row[x / per_byte] >> shift) & mask;
+            if index as usize >= entries {
+                return Err(Error::format(
+                    path,
+                    "image data",
+                    format!("pixel ({x}, {y}) has palette index {index}, but the palette has {entries} colours"),
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// RGBA floats in [0, 1] (v / 255 or v / 65535, as stored), grey repeated, missing alpha 1.
@@ -685,6 +730,45 @@ mod tests {
             }
             assert_eq!(check_image(&path).unwrap(), (img.width, 1));
             assert_eq!(image_dimensions(&path).unwrap(), (img.width, 1));
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A palette index past the palette's end is refused by name (the decoder's expansion would
+    /// read it as black); every depth's packing is unpacked, padding bits are not indices.
+    #[test]
+    fn palette_indices_past_the_palette_are_refused() {
+        use png::BitDepth::{Eight, Four, One};
+        use png::ColorType::Indexed;
+        let dir = std::env::temp_dir().join(format!("radiogs-pngpalette-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.png");
+        let two = [255, 0, 0, 0, 255, 0];
+        let cases: [(Vec<u8>, Option<&str>); 5] = [
+            // 4 bits: indices 0, 1, 5 (+ a padding nibble of 15, not an index).
+            (png_file(3, Indexed, Four, (&two, &[]), &[0x01, 0x5f]), Some("pixel (2, 0) has palette index 5")),
+            (png_file(3, Indexed, Four, (&two, &[]), &[0x01, 0x1f]), None),
+            (png_file(2, Indexed, Eight, (&two, &[]), &[1, 200]), Some("pixel (1, 0) has palette index 200")),
+            // 1 bit, one colour: the third pixel's bit is set.
+            (png_file(4, Indexed, One, (&two[..3], &[]), &[0b0010_1111]), Some("pixel (2, 0) has palette index 1")),
+            (png_file(4, Indexed, One, (&two[..3], &[]), &[0b0000_1111]), None),
+        ];
+        for (i, (bytes, refused)) in cases.iter().enumerate() {
+            std::fs::write(&path, bytes).unwrap();
+            match refused {
+                Some(says) => {
+                    for err in [read_rgba(&path).unwrap_err(), check_image(&path).unwrap_err()] {
+                        let err = err.to_string();
+                        assert!(
+                            err.contains("p.png") && err.contains(says) && err.contains("palette has"),
+                            "{i}: {err}"
+                        );
+                    }
+                }
+                None => {
+                    read_rgba(&path).unwrap();
+                }
+            }
         }
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -411,3 +411,19 @@ fn zero_repeats_are_refused() {
         assert!(err.contains("--repeats") && err.contains("1..="), "{args:?}: {err}");
     }
 }
+
+/// A dataset kept from an earlier demo is not reused for another scene, size or seed: the demo
+/// refuses before training, naming both (it used to train on the old scene).
+#[test]
+fn the_demo_does_not_reuse_another_scenes_dataset() {
+    let dir = temp_dir("demo-kept");
+    let out = dir.join("demo");
+    synth_tiny(&out.join("data"), "16", "2", &["--scene", "spheres"]);
+    for (scene, res, seed) in [("cornell", "16", "0"), ("spheres", "32", "0"), ("spheres", "16", "3")] {
+        let args = ["demo", "--out", out.to_str().unwrap(), "--scene", scene, "--res", res, "--seed", seed];
+        let (code, _, err) = radiogs(&args);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("holds the dataset of --scene spheres --res 16 --seed 0"), "{err}");
+        assert!(!out.join("run").exists(), "{args:?}: trained");
+    }
+}

@@ -46,6 +46,35 @@ struct TrainWrapper {
     args: TrainConfig,
 }
 
+/// A dataset an earlier demo left in `data` is used again only if it is the one asked for:
+/// the scene, size and seed its README.json records (a `--scene cornell` after a spheres demo
+/// used to train on the spheres). A dataset that radiogs did not synthesise is used as it is.
+fn check_kept_dataset(data: &Path, args: &DemoArgs) -> anyhow::Result<()> {
+    let path = data.join("README.json");
+    let Ok(bytes) = std::fs::read(&path) else { return Ok(()) };
+    let readme: serde_json::Value =
+        serde_json::from_slice(&bytes).with_context(|| format!("{}: not valid JSON", path.display()))?;
+    if !readme["generator"].as_str().is_some_and(|g| g.starts_with("radiogs synth")) {
+        return Ok(());
+    }
+    let (scene, res, seed) = (readme["scene"].as_str(), readme["resolution"][0].as_u64(), readme["seed"].as_u64());
+    if scene != Some(args.scene.as_str()) || res != Some(args.res as u64) || seed != Some(args.seed) {
+        let show = |v: Option<String>| v.unwrap_or_else(|| "?".into());
+        anyhow::bail!(
+            "{}: holds the dataset of --scene {} --res {} --seed {}, not the --scene {} --res {} --seed {} asked for; \
+             remove it, or give the demo another --out",
+            data.display(),
+            show(scene.map(String::from)),
+            show(res.map(|r| r.to_string())),
+            show(seed.map(|s| s.to_string())),
+            args.scene,
+            args.res,
+            args.seed
+        );
+    }
+    Ok(())
+}
+
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     let data = args.out.join("data");
@@ -103,6 +132,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         eprintln!("[1/4] synthesising '{}' into {}", args.scene, data.display());
         crate::synth::run(&synth)?;
     } else {
+        check_kept_dataset(&data, args)?;
         eprintln!("[1/4] using the dataset already in {}", data.display());
     }
     eprintln!(

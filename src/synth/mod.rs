@@ -233,15 +233,15 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     }
     // The dataset is written beside `--out` and moved there whole at the end: a synthesis that
     // fails or is stopped half-way leaves no half-written dataset (nor a mix of two).
-    let holds_files = std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(args.out.exists());
+    if args.out.exists() && !args.out.is_dir() {
+        anyhow::bail!("--out {}: exists and is not a folder", args.out.display());
+    }
+    let holds_files = std::fs::read_dir(&args.out).is_ok_and(|mut d| d.next().is_some());
     if holds_files && !args.overwrite {
         anyhow::bail!(
             "--out {}: exists and is not empty; pass --overwrite to replace it, or name a new folder",
             args.out.display()
         );
-    }
-    if args.out.exists() && !args.out.is_dir() {
-        anyhow::bail!("--out {}: exists and is not a folder", args.out.display());
     }
     let partial = crate::io::atomic::PartialDir::beside(&args.out).context("--out")?;
     let out = partial.path();

@@ -24,6 +24,14 @@ impl Checkpoint {
         self.blobs.iter().find(|(n, _)| n == name).map(|(_, v)| v.as_slice())
     }
 
+    /// A whole-number meta value, named with the file when missing or of another type.
+    pub fn meta_u64(&self, path: &Path, key: &str) -> Result<u64> {
+        self.meta
+            .get(key)
+            .and_then(|v| v.as_u64())
+            .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
+    }
+
     pub fn require(&self, path: &Path, name: &str) -> Result<&[f32]> {
         self.blob(name).ok_or_else(|| Error::format(path, format!("blob {name}"), "missing"))
     }

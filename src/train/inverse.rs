@@ -192,12 +192,7 @@ impl InverseState {
     }
 
     pub fn from_checkpoint(path: &Path, c: &Checkpoint, cfg: &TrainConfig) -> crate::Result<InverseState> {
-        let meta_u64 = |key: &str| {
-            c.meta
-                .get(key)
-                .and_then(|v| v.as_u64())
-                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
-        };
+        let meta_u64 = |key: &str| c.meta_u64(path, key);
         let surfels = c.get_surfels(path, "params")?;
         let extent = c.meta.get("extent").and_then(|v| v.as_f64()).unwrap_or(1.0) as f32;
         let mut adam = SurfelAdam::new(&surfels, learning_rates(cfg));
@@ -228,7 +223,7 @@ impl InverseState {
                 return Err(Error::format(path, name, format!("{len} rays, but cache.visibility holds {rays}")));
             }
         }
-        if samples * surfels.len() != rays && rays != 0 {
+        if samples.checked_mul(surfels.len()) != Some(rays) && rays != 0 {
             return Err(Error::format(
                 path,
                 "cache_samples",
@@ -1035,10 +1030,13 @@ mod tests {
             let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
             assert!(err.contains("checkpoint_inverse.bin") && err.contains(blob), "{err}");
         }
-        let mut c = good.clone();
-        c.meta["cache_samples"] = serde_json::json!(3);
-        let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
-        assert!(err.contains("cache"), "{err}");
+        // A wrong sample count, and one whose product with the surfel count overflows.
+        for samples in [3u64, 1 << 62] {
+            let mut c = good.clone();
+            c.meta["cache_samples"] = serde_json::json!(samples);
+            let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
+            assert!(err.contains("cache"), "{err}");
+        }
     }
 
     /// The split-sum PBR colour of `SurfelShading` (Lambert Monte Carlo + occluded split-sum

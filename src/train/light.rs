@@ -54,12 +54,7 @@ impl LearnedLight {
 
     /// Read what [`put`](Self::put) stored; the learning rate comes from `cfg`.
     pub fn get(path: &Path, c: &Checkpoint, cfg: &TrainConfig) -> Result<LearnedLight> {
-        let meta_u64 = |key: &str| {
-            c.meta
-                .get(key)
-                .and_then(|v| v.as_u64())
-                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
-        };
+        let meta_u64 = |key: &str| c.meta_u64(path, key);
         let h = meta_u64("env_height")? as usize;
         if h < 8 || h % 8 != 0 {
             return Err(Error::format(path, "env_height", format!("{h} is not a multiple of 8 (at least 8)")));

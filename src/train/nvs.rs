@@ -210,12 +210,7 @@ impl NvsState {
     }
 
     pub fn from_checkpoint(path: &Path, c: &Checkpoint, cfg: &TrainConfig) -> crate::Result<NvsState> {
-        let meta_u64 = |key: &str| {
-            c.meta
-                .get(key)
-                .and_then(|v| v.as_u64())
-                .ok_or_else(|| Error::format(path, key, "missing from the checkpoint, or not a whole number"))
-        };
+        let meta_u64 = |key: &str| c.meta_u64(path, key);
         let surfels = c.get_surfels(path, "params")?;
         let stage = match c.meta.get("stage").and_then(|s| s.as_str()) {
             Some("nvs") => GeometryStage::Nvs,

@@ -10,6 +10,7 @@ pub mod eval;
 pub mod io;
 pub mod loss;
 pub mod optim;
+pub mod orbit;
 pub mod pbr_scene;
 pub mod raster;
 pub mod relight;

@@ -355,7 +355,11 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
         RelightMode::Finetune => "radiogs render --run",
         RelightMode::Traced => "radiogs render --mode pbr --run",
     };
-    eprintln!("relit scene → {}; look at it with `{how} {} --out DIR`", args.out.display(), args.out.display());
+    eprintln!(
+        "relit scene → {}; look at it with `{how} {} --out DIR` (add `--orbit 96` for a turntable)",
+        args.out.display(),
+        args.out.display()
+    );
     Ok(())
 }
 

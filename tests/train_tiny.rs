@@ -293,10 +293,16 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
     let (p_half, p_full) = (half["mean"]["psnr"].as_f64().unwrap(), full["mean"]["psnr"].as_f64().unwrap());
     // Trained at 16², the views are learnt there; the full-size render is of the same scene.
     assert!(p_half > 28.0 && p_full > 20.0, "PSNR at 16² {p_half}, at 32² {p_full}");
-    // `render --run` draws the test views at the run's factor, or at the one given.
+    // `render --run` draws the test views at the run's factor, at the one given, or at
+    // --width × --height; an orbit keeps that size.
     use radiogs::commands::render::{ImageFormat, RenderArgs, RenderMode};
-    for (resolution, size) in [(None, 16), (Some(1), 32)] {
-        let out = run.join(format!("render-{size}"));
+    for (resolution, given, orbit, size) in [
+        (None, None, None, (16, 16)),
+        (Some(1), None, None, (32, 32)),
+        (None, Some((24, 20)), None, (24, 20)),
+        (None, Some((24, 20)), Some(3), (24, 20)),
+    ] {
+        let out = run.join(format!("render-{}-{}-{}", size.0, size.1, orbit.is_some()));
         radiogs::commands::render::run(&RenderArgs {
             run: Some(run.clone()),
             ply: None,
@@ -306,16 +312,20 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
             two_sided: false,
             format: ImageFormat::Png,
             aux: false,
-            width: None,
-            height: None,
+            width: given.map(|g: (u32, u32)| g.0),
+            height: given.map(|g| g.1),
             resolution,
             mode: RenderMode::Surfel,
             envmap: None,
             filter_inv_square: None,
             display_stop: 0.0,
+            orbit,
+            orbit_elevation: None,
         })
         .unwrap();
-        let img = radiogs::io::image::read_rgba(&out.join("r_0.png")).unwrap();
-        assert_eq!((img.width, img.height), (size, size));
+        let first = if orbit.is_some() { "orbit_000.png" } else { "r_0.png" };
+        let img = radiogs::io::image::read_rgba(&out.join(first)).unwrap();
+        assert_eq!((img.width, img.height), size);
+        assert_eq!(out.join("orbit.apng").is_file(), orbit.is_some());
     }
 }

@@ -154,12 +154,50 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         relight_bounces: crate::relight::TRACED_BOUNCES,
         resolution: None,
     })?;
-    eprintln!("[4/4] writing the report");
+    eprintln!("[4/4] turntables and the report");
+    write_turntables(&args.out.join("orbit"), &run)?;
     let report = args.out.join("report.html");
     write_report(&report, &data, &run, started.elapsed().as_secs_f64())?;
     let overview = args.out.join("overview.png");
     write_overview(&overview, &data, &run, 2)?;
     println!("report: {} (picture: {})", report.display(), overview.display());
+    Ok(())
+}
+
+/// Frames of each turntable in the report (24 frames/s: a turn in 1.5 s).
+const TURNTABLE_FRAMES: usize = 36;
+/// The report's turntables: `render --orbit` of the run in these modes, each into `orbit/<mode>`.
+const TURNTABLE_MODES: [(crate::commands::render::RenderMode, &str); 3] = [
+    (crate::commands::render::RenderMode::Surfel, "surfel"),
+    (crate::commands::render::RenderMode::Pbr, "pbr"),
+    (crate::commands::render::RenderMode::Albedo, "albedo"),
+];
+
+/// The object once around, as the learned radiance, the PBR render under the recovered light
+/// and the recovered albedo (`radiogs render --run RUN --orbit 36 --mode …`).
+fn write_turntables(dir: &Path, run: &Path) -> anyhow::Result<()> {
+    use crate::commands::render::{ImageFormat, RenderArgs};
+    for (mode, name) in TURNTABLE_MODES {
+        crate::commands::render::run(&RenderArgs {
+            run: Some(run.to_path_buf()),
+            ply: None,
+            cameras: None,
+            out: dir.join(name),
+            k: 8,
+            two_sided: false,
+            filter_inv_square: None,
+            format: ImageFormat::Png,
+            aux: false,
+            width: None,
+            height: None,
+            resolution: None,
+            display_stop: 0.0,
+            mode,
+            envmap: None,
+            orbit: Some(TURNTABLE_FRAMES),
+            orbit_elevation: None,
+        })?;
+    }
     Ok(())
 }
 
@@ -182,8 +220,9 @@ fn base64(bytes: &[u8]) -> String {
 }
 
 fn img_tag(path: &Path) -> String {
+    let mime = if path.extension().is_some_and(|e| e == "apng") { "image/apng" } else { "image/png" };
     match std::fs::read(path) {
-        Ok(bytes) => format!("<img src=\"data:image/png;base64,{}\">", base64(&bytes)),
+        Ok(bytes) => format!("<img src=\"data:{mime};base64,{}\">", base64(&bytes)),
         Err(_) => "<span class=missing>missing</span>".to_string(),
     }
 }
@@ -335,6 +374,21 @@ pub fn write_report(path: &Path, data: &Path, run: &Path, seconds: f64) -> anyho
     html.push_str(&svg_curve(&series("surfels"), "surfels"));
     html.push_str("</div>");
 
+    let orbit = path.parent().unwrap_or(Path::new(".")).join("orbit");
+    if orbit.join("surfel/orbit.apng").is_file() {
+        html.push_str(
+            "<h2>Turntable: learned radiance | PBR under the recovered light | recovered albedo</h2><div class=row>",
+        );
+        for (_, name) in TURNTABLE_MODES {
+            html.push_str(&img_tag(&orbit.join(name).join("orbit.apng")));
+        }
+        let _ = write!(
+            html,
+            "</div><p><small>{TURNTABLE_FRAMES} frames once around the object (<code>radiogs render --run {} --orbit {TURNTABLE_FRAMES} --mode surfel|pbr|albedo</code>); the frames are in <code>{}</code>.</small></p>",
+            run.display(),
+            orbit.display()
+        );
+    }
     html.push_str("<h2>Test views: ground truth | ours | GT normals | our normals</h2>");
     let tmp = run.join("eval/report_gt");
     if let Some(views) = metrics["per_view"].as_array() {

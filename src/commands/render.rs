@@ -7,6 +7,7 @@
 //! hits behind the median pulled toward it, no hidden-surface bleed), `<name>_normal.exr`
 //! (world normal Σ w n, premultiplied) and `<name>_distortion.exr`.
 
+use crate::camera::Camera;
 use crate::io::image::{Image, write_image};
 use crate::raster::{self, Outputs, RasterSettings};
 use crate::train::config::MAX_DOWNSCALE;
@@ -119,7 +120,20 @@ pub struct RenderArgs {
     #[arg(long)]
     #[serde(default)]
     pub envmap: Option<PathBuf>,
+    /// Instead of the views, render N frames once around the object (about the vertical, at the
+    /// views' median distance and elevation, aimed where they look; the first view's
+    /// intrinsics): orbit_000 … and, as PNG, the animation orbit.apng at 24 frames/s.
+    #[arg(long, value_name = "N")]
+    #[serde(default)]
+    pub orbit: Option<usize>,
+    /// The orbit's elevation in degrees above the object's centre (default: the views' median).
+    #[arg(long, value_name = "DEG", requires = "orbit", allow_negative_numbers = true)]
+    #[serde(default)]
+    pub orbit_elevation: Option<f32>,
 }
+
+/// Frames per second of `render --orbit`'s animation.
+pub const ORBIT_FPS: u16 = 24;
 
 fn default_k() -> usize {
     8
@@ -185,6 +199,18 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     if views.is_empty() {
         bail!("no views to render (the camera file's frames are empty)");
     }
+    // --width/--height size a run's test views too (a camera file's are sized as read).
+    let cameras: Vec<Camera> = views
+        .into_iter()
+        .map(|v| match size {
+            Some((w, h)) if args.cameras.is_none() => v.camera.scaled(w, h),
+            _ => v.camera,
+        })
+        .collect();
+    let cameras = match args.orbit {
+        Some(frames) => crate::orbit::orbit(&cameras, frames, args.orbit_elevation)?,
+        None => cameras,
+    };
     let outputs = Outputs {
         colour: true,
         depth: args.aux,
@@ -212,7 +238,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         bail!("--aux is only available with --mode surfel");
     }
     if args.mode.needs_materials() {
-        return render_pbr_modes(args, &views);
+        return render_pbr_modes(args, &cameras);
     }
     if args.mode == RenderMode::Surfel
         && let Some(run) = &args.run
@@ -222,12 +248,11 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             bail!("--display-stop: {} was relit in traced mode and renders with --mode pbr", run.display());
         }
         eprintln!("{}: a ray-traced relit run renders with --mode pbr", run.display());
-        return render_pbr_modes(&RenderArgs { mode: RenderMode::Pbr, ..args.clone() }, &views);
+        return render_pbr_modes(&RenderArgs { mode: RenderMode::Pbr, ..args.clone() }, &cameras);
     }
     create_out(&args.out)?;
-    let bar = indicatif::ProgressBar::new(views.len() as u64);
-    for view in &views {
-        let cam = &view.camera;
+    let bar = indicatif::ProgressBar::new(cameras.len() as u64);
+    for cam in &cameras {
         let img = match args.mode {
             RenderMode::Surfel => raster::render(&surfels, cam, &settings, None).0,
             RenderMode::Traced => {
@@ -260,7 +285,19 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    println!("rendered {} views of {} surfels to {}", views.len(), surfels.len(), args.out.display());
+    println!("rendered {} views of {} surfels to {}", cameras.len(), surfels.len(), args.out.display());
+    write_orbit_animation(args, &cameras)
+}
+
+/// With `--orbit` and PNG frames: the frames as one looping animated PNG, `orbit.apng`.
+fn write_orbit_animation(args: &RenderArgs, cameras: &[Camera]) -> anyhow::Result<()> {
+    if args.orbit.is_none() || args.format != ImageFormat::Png {
+        return Ok(());
+    }
+    let frames: Vec<PathBuf> = cameras.iter().map(|c| args.out.join(format!("{}.png", c.name))).collect();
+    let path = args.out.join("orbit.apng");
+    crate::io::image::write_apng(&path, &frames, ORBIT_FPS)?;
+    println!("animation: {} ({} frames at {ORBIT_FPS} frames/s)", path.display(), frames.len());
     Ok(())
 }
 
@@ -270,7 +307,7 @@ fn create_out(out: &std::path::Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating output folder {}", out.display()))
 }
 
-fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> anyhow::Result<()> {
+fn render_pbr_modes(args: &RenderArgs, cameras: &[Camera]) -> anyhow::Result<()> {
     use crate::io::image::linear_to_srgb;
     let Some(run) = &args.run else { bail!("--mode {:?} needs --run RUN (a run after the inverse stage)", args.mode) };
     let Some(mut scene) = crate::pbr_scene::PbrScene::from_run(run)? else {
@@ -285,11 +322,10 @@ fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> an
     }
     scene.window = args.k;
     create_out(&args.out)?;
-    let bar = indicatif::ProgressBar::new(views.len() as u64);
+    let bar = indicatif::ProgressBar::new(cameras.len() as u64);
     let png = args.format == ImageFormat::Png;
     let split_sum = scene.split_sum();
-    for view in views {
-        let cam = &view.camera;
+    for cam in cameras {
         let img = scene.render_with(cam, [0.0; 3], split_sum.as_ref());
         let mut rgba = Image::new(cam.width, cam.height, 4);
         for (i, px) in rgba.data.chunks_exact_mut(4).enumerate() {
@@ -322,18 +358,17 @@ fn render_pbr_modes(args: &RenderArgs, views: &[crate::io::dataset::View]) -> an
     bar.finish_and_clear();
     println!(
         "rendered {} views ({:?}) of {} surfels to {}",
-        views.len(),
+        cameras.len(),
         args.mode,
         scene.surfels.len(),
         args.out.display()
     );
-    Ok(())
+    write_orbit_animation(args, cameras)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::Camera;
     use crate::surfels::{Surfels, quat_with_normal};
     use glam::Vec3;
 
@@ -386,6 +421,8 @@ mod tests {
             envmap: None,
             filter_inv_square: None,
             display_stop: 0.0,
+            orbit: None,
+            orbit_elevation: None,
         };
         run(&args).unwrap();
         let png = crate::io::image::read_rgba(&out.join("front.png")).unwrap();
@@ -443,6 +480,91 @@ mod tests {
         args.k = 8;
         args.filter_inv_square = Some(f32::NAN);
         assert!(run(&args).unwrap_err().to_string().contains("--filter-inv-square"));
+        if std::env::var_os("RADIOGS_KEEP_TEST_OUTPUT").is_none() {
+            std::fs::remove_dir_all(&dir).ok();
+        }
+    }
+
+    /// The frames of an APNG, decoded independently of `write_apng`, and its play count.
+    fn apng_frames(path: &std::path::Path) -> (Vec<Vec<u8>>, u32, (u16, u16)) {
+        let mut reader =
+            png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap())).read_info().unwrap();
+        let control = reader.info().animation_control.expect("an animation control chunk");
+        let mut frames = Vec::new();
+        let mut delay = (0, 0);
+        for _ in 0..control.num_frames {
+            let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+            let out = reader.next_frame(&mut buf).unwrap();
+            let fc = reader.info().frame_control.unwrap();
+            delay = (fc.delay_num, fc.delay_den);
+            buf.truncate(out.buffer_size());
+            frames.push(buf);
+        }
+        (frames, control.num_plays, delay)
+    }
+
+    #[test]
+    fn an_orbit_renders_frames_around_the_object_and_their_animation() {
+        let dir = std::env::temp_dir().join(format!("radiogs-orbit-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (ply, cams) = sphere_scene(&dir);
+        let out = dir.join("orbit");
+        let mut args = RenderArgs {
+            run: None,
+            ply: Some(ply),
+            cameras: Some(cams),
+            out: out.clone(),
+            k: 8,
+            two_sided: false,
+            format: ImageFormat::Png,
+            aux: false,
+            width: None,
+            height: None,
+            resolution: None,
+            mode: RenderMode::Surfel,
+            envmap: None,
+            filter_inv_square: None,
+            display_stop: 0.0,
+            orbit: Some(6),
+            orbit_elevation: Some(30.0),
+        };
+        run(&args).unwrap();
+        let (frames, plays, delay) = apng_frames(&out.join("orbit.apng"));
+        assert_eq!((frames.len(), plays, delay), (6, 0, (1, ORBIT_FPS)));
+        for (i, frame) in frames.iter().enumerate() {
+            // Each animation frame is its PNG file, pixel for pixel.
+            let png = crate::io::image::read_rgba(&out.join(format!("orbit_{i:03}.png"))).unwrap();
+            assert_eq!((png.width, png.height), (64, 48));
+            let bytes: Vec<u8> = png.data.iter().map(|&v| (v * 255.0).round() as u8).collect();
+            assert!(bytes == *frame, "frame {i} differs from its file");
+            // The unit sphere at the centre the two cameras aim at fills the middle of every
+            // frame and leaves the corners empty; frames differ as the sphere's colours turn.
+            assert!(png.pixel(32, 24)[3] > 0.97, "frame {i}: centre alpha {}", png.pixel(32, 24)[3]);
+            assert_eq!(png.pixel(0, 0)[3], 0.0);
+        }
+        assert!(frames[0] != frames[3]);
+        // The sphere is coloured by its normal: frame 0 looks from the first camera's azimuth
+        // (−y), so the centre pixel is ≈ (0.5, 0, 0.5 + elevation); half a turn later (+y) green.
+        let (f0, f3) = (
+            crate::io::image::read_rgba(&out.join("orbit_000.png")).unwrap(),
+            crate::io::image::read_rgba(&out.join("orbit_003.png")).unwrap(),
+        );
+        assert!(
+            f0.pixel(32, 24)[1] < 0.2 && f3.pixel(32, 24)[1] > 0.8,
+            "{:?} {:?}",
+            f0.pixel(32, 24),
+            f3.pixel(32, 24)
+        );
+        // EXR frames have no animation; bad orbits are refused by flag.
+        args.format = ImageFormat::Exr;
+        args.out = dir.join("orbit_exr");
+        run(&args).unwrap();
+        assert!(dir.join("orbit_exr/orbit_005.exr").is_file() && !dir.join("orbit_exr/orbit.apng").exists());
+        args.orbit = Some(0);
+        assert!(run(&args).unwrap_err().to_string().contains("--orbit"));
+        args.orbit = Some(4);
+        args.orbit_elevation = Some(91.0);
+        assert!(run(&args).unwrap_err().to_string().contains("--orbit-elevation"));
         if std::env::var_os("RADIOGS_KEEP_TEST_OUTPUT").is_none() {
             std::fs::remove_dir_all(&dir).ok();
         }

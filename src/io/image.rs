@@ -6,7 +6,7 @@ use crate::error::{Error, Result};
 use crate::io::atomic::write_atomic;
 use crate::io::dataset::MAX_IMAGE_SIDE;
 use crate::io::rgbe;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// An interleaved float image, row-major from the top row.
 #[derive(Clone, Debug, PartialEq)]
@@ -464,6 +464,45 @@ fn encode_png(img: &Image, path: &Path) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
+/// An animated PNG (APNG, looping forever at `fps` frames per second) of 8-bit PNG files of
+/// one size, each frame exactly its file's pixels (read back as RGBA). Browsers and most image
+/// viewers play it; others show the first frame. Atomic, like every writer here.
+pub fn write_apng(path: &Path, frames: &[PathBuf], fps: u16) -> Result<()> {
+    let Some(first) = frames.first() else {
+        return Err(Error::invalid(path.display().to_string(), "an animation needs at least one frame"));
+    };
+    if fps == 0 {
+        return Err(Error::invalid(path.display().to_string(), "frame rate 0"));
+    }
+    let (width, height) = image_dimensions(first)?;
+    let encoding_error = |e: png::EncodingError| Error::format(path, "encoding", e.to_string());
+    let mut bytes = Vec::new();
+    let mut encoder = png::Encoder::new(&mut bytes, width, height);
+    encoder.set_color(png::ColorType::Rgba);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::Fast);
+    encoder.set_filter(png::Filter::Adaptive);
+    let count =
+        u32::try_from(frames.len()).map_err(|_| Error::invalid(path.display().to_string(), "too many frames"))?;
+    encoder.set_animated(count, 0).map_err(encoding_error)?;
+    encoder.set_frame_delay(1, fps).map_err(encoding_error)?;
+    let mut writer = encoder.write_header().map_err(encoding_error)?;
+    for frame in frames {
+        let img = read_rgba(frame)?;
+        if (img.width, img.height) != (width, height) {
+            return Err(Error::invalid(
+                frame.display().to_string(),
+                format!("is {} × {}, the animation's first frame {width} × {height}", img.width, img.height),
+            ));
+        }
+        // read_rgba gives k / 255 for 8-bit samples; this rounds back to k exactly.
+        let pixels: Vec<u8> = img.data.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+        writer.write_image_data(&pixels).map_err(encoding_error)?;
+    }
+    writer.finish().map_err(encoding_error)?;
+    write_atomic(path, &bytes)
+}
+
 /// OpenEXR, ZIP-compressed scan lines in increasing order. The exr default (tiles in
 /// unspecified order, compressed in parallel) could give the same picture as different bytes
 /// from run to run; a run's outputs must be reproducible.
@@ -610,6 +649,22 @@ mod tests {
     }
 
     /// Other formats (JPEG here) are refused by name, nothing written.
+    #[test]
+    fn an_animation_refuses_frames_of_another_size_by_name() {
+        let dir = std::env::temp_dir().join(format!("radiogs-apng-{}", std::process::id()));
+        let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+        write_image(&a, &Image::new(4, 3, 4)).unwrap();
+        write_image(&b, &Image::new(3, 4, 4)).unwrap();
+        let out = dir.join("anim.apng");
+        write_apng(&out, &[a.clone(), a.clone()], 24).unwrap();
+        assert_eq!(image_dimensions(&out).unwrap(), (4, 3));
+        let err = write_apng(&dir.join("bad.apng"), &[a.clone(), b], 24).unwrap_err().to_string();
+        assert!(err.contains("b.png") && err.contains("3 × 4"), "{err}");
+        assert!(!dir.join("bad.apng").exists());
+        assert!(write_apng(&out, &[], 24).is_err() && write_apng(&out, &[a], 0).is_err());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
     #[test]
     fn unsupported_output_format_is_refused() {
         let dir = std::env::temp_dir().join(format!("radiogs-fmt-{}", std::process::id()));

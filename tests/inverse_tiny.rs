@@ -147,6 +147,46 @@ fn light_warmup_freezes_materials_then_releases_them() {
     assert!(change > 1e-3, "albedo did not move after the warm-up: {change}");
 }
 
+/// `--prune-contribution`: the stage starts without the surfels that no training pixel shows
+/// at that weight (here a faint one on the plane and one outside every view); 0 keeps them.
+#[test]
+fn prune_contribution_drops_the_surfels_no_view_shows() {
+    for tau in [0.0, 1.0 / 255.0] {
+        let (data, dataset, run) = dataset_and_nvs_run(&format!("prune{}", tau > 0.0));
+        let path = radiogs::train::nvs::checkpoint_path(&run);
+        let mut c = Checkpoint::load(&path).unwrap();
+        let mut s = c.get_surfels(&path, "params").unwrap();
+        let up = quat_with_normal([0.0, 0.0, 1.0]);
+        s.push([0.05, 0.05, 0.01], [0.05, 0.05], up, 0.002, [0.5; 3], TRUE_ALBEDO, 0.9);
+        s.push([6.0, 6.0, 0.0], [0.05, 0.05], up, 0.9, [0.5; 3], TRUE_ALBEDO, 0.9);
+        c.put_surfels("params", &s);
+        c.save(&path).unwrap();
+        let cfg = TrainConfig {
+            inverse_iters: 1,
+            // Geometry held, so that the surfels can be matched by their centres.
+            geometry_lr_scale: 0.0,
+            prune_contribution: tau,
+            pbr_samples: 4,
+            rc_rays: 4,
+            rc_surfels: 4,
+            ..tiny_config(&data, &run)
+        };
+        cfg.save(&run.join("config.toml")).unwrap();
+        radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+        let out = radiogs::io::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
+        let kept = |m: &[f32; 3]| out.means.contains(m);
+        if tau == 0.0 {
+            assert!(out.len() == 66 && s.means.iter().all(kept), "{} surfels", out.len());
+        } else {
+            // Both extras go; the plane stays but for a few rim surfels that coplanar
+            // neighbours blended before them cover in every view (weights below 1/255).
+            assert!(!kept(&s.means[64]) && !kept(&s.means[65]));
+            let plane = s.means[..64].iter().filter(|m| kept(m)).count();
+            assert!(plane >= 58 && out.len() == plane, "{plane} plane surfels of 64 kept, {} in all", out.len());
+        }
+    }
+}
+
 #[test]
 fn lambert_plane_albedo_converges_under_known_light() {
     let (data, dataset, run) = dataset_and_nvs_run("plane");

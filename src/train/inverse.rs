@@ -135,6 +135,22 @@ impl InverseState {
             // it now faces (their appearance was never trained) into view.
             tracing::info!("inverse: the geometry stage culled back faces; its {n0} surfels keep their orientation");
         }
+        // Drop what no training pixel sees, as this stage renders (back faces culled).
+        let settings = RasterSettings {
+            window: cfg.window,
+            filter_inv_square: cfg.filter_inv_square,
+            two_sided: false,
+            outputs: Outputs { colour: true, ..Outputs::none() },
+            ..RasterSettings::default()
+        };
+        let n1 = surfels.len();
+        let dropped = super::contribution::prune_unseen(&mut surfels, cameras, &settings, cfg.prune_contribution);
+        if dropped > 0 {
+            tracing::info!(
+                "inverse: dropped {dropped} of {n1} surfels that reach a blend weight of {} in no training pixel",
+                cfg.prune_contribution
+            );
+        }
         if kept_light.is_none() {
             if cfg.albedo_init_hue > 0.0 {
                 let fresh = super::albedo_chroma::hued_albedo(&surfels, cfg.albedo_init, cfg.albedo_init_hue);

@@ -3,6 +3,7 @@ pub mod albedo_chroma;
 pub mod checkpoint;
 pub mod config;
 pub mod consistency;
+pub mod contribution;
 pub mod densify;
 pub mod gauge;
 pub mod init;

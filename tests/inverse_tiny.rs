@@ -268,6 +268,16 @@ fn lambert_plane_albedo_converges_under_known_light() {
         let c = if mode == radiogs::relight::RelightMode::Traced { img.pbr[centre] } else { img.sh[centre] };
         assert!(c[0] > c[1] && c[1] > c[2], "{name}: relit centre {c:?}");
     }
+    // The demo's report on this run: its turntables (both modes) play inline.
+    let demo = temp_dir("report");
+    radiogs::commands::demo::write_turntables(&demo.join("orbit"), &run).unwrap();
+    let report = demo.join("report.html");
+    radiogs::commands::demo::write_report(&report, &data, &run, 1.0).unwrap();
+    let html = std::fs::read_to_string(&report).unwrap();
+    assert_eq!(html.matches("data:image/apng;base64,").count(), 2, "two turntables inline");
+    for mode in ["surfel", "pbr"] {
+        assert!(demo.join(format!("orbit/{mode}/orbit_035.png")).is_file(), "{mode}");
+    }
 }
 
 /// A resumed inverse stage equals the uninterrupted one bit for bit: the checkpoint keeps the

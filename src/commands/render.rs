@@ -399,21 +399,17 @@ mod tests {
         (ply, cams)
     }
 
-    #[test]
-    fn renders_png_exr_and_aux_of_a_ply_sphere() {
-        let dir = std::env::temp_dir().join(format!("radiogs-render-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let (ply, cams) = sphere_scene(&dir);
-        let out = dir.join("out");
-        let mut args = RenderArgs {
+    /// `render --ply PLY --cameras CAMS --out OUT` with every other option at its default.
+    fn ply_args(ply: PathBuf, cams: PathBuf, out: &std::path::Path) -> RenderArgs {
+        RenderArgs {
             run: None,
             ply: Some(ply),
             cameras: Some(cams),
-            out: out.clone(),
+            out: out.to_path_buf(),
             k: 8,
             two_sided: false,
             format: ImageFormat::Png,
-            aux: true,
+            aux: false,
             width: None,
             height: None,
             resolution: None,
@@ -423,7 +419,16 @@ mod tests {
             display_stop: 0.0,
             orbit: None,
             orbit_elevation: None,
-        };
+        }
+    }
+
+    #[test]
+    fn renders_png_exr_and_aux_of_a_ply_sphere() {
+        let dir = std::env::temp_dir().join(format!("radiogs-render-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (ply, cams) = sphere_scene(&dir);
+        let out = dir.join("out");
+        let mut args = RenderArgs { aux: true, ..ply_args(ply, cams, &out) };
         run(&args).unwrap();
         let png = crate::io::image::read_rgba(&out.join("front.png")).unwrap();
         assert_eq!((png.width, png.height), (64, 48));
@@ -509,25 +514,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let (ply, cams) = sphere_scene(&dir);
         let out = dir.join("orbit");
-        let mut args = RenderArgs {
-            run: None,
-            ply: Some(ply),
-            cameras: Some(cams),
-            out: out.clone(),
-            k: 8,
-            two_sided: false,
-            format: ImageFormat::Png,
-            aux: false,
-            width: None,
-            height: None,
-            resolution: None,
-            mode: RenderMode::Surfel,
-            envmap: None,
-            filter_inv_square: None,
-            display_stop: 0.0,
-            orbit: Some(6),
-            orbit_elevation: Some(30.0),
-        };
+        let mut args = RenderArgs { orbit: Some(6), orbit_elevation: Some(30.0), ..ply_args(ply, cams, &out) };
         run(&args).unwrap();
         let (frames, plays, delay) = apng_frames(&out.join("orbit.apng"));
         assert_eq!((frames.len(), plays, delay), (6, 0, (1, ORBIT_FPS)));

@@ -111,7 +111,29 @@ pub fn load_run_config(run: &Path) -> anyhow::Result<TrainConfig> {
     if run.join("envmap.exr").is_file() {
         cfg.two_sided = false;
     }
+    cfg.data = dataset_of_run(run, &cfg.data, &cfg.out);
     Ok(cfg)
+}
+
+/// Where a run's dataset is. The run records `--data` and `--out` as they were typed, relative
+/// to the folder training ran in, so from another folder a relative `data` misses. When `run`
+/// ends with the recorded `out`, that folder is `run` without those last components, and the
+/// dataset is `data` there (`--data demo/data --out demo/run` trained in X: X/demo/data). Any
+/// other case keeps `data` as recorded.
+fn dataset_of_run(run: &Path, data: &Path, out: &Path) -> PathBuf {
+    if data.as_os_str().is_empty() || data.is_absolute() || data.exists() || out.is_absolute() {
+        return data.to_path_buf();
+    }
+    let Ok(run) = std::path::absolute(run) else { return data.to_path_buf() };
+    if out.as_os_str().is_empty() || !run.ends_with(out) {
+        return data.to_path_buf();
+    }
+    let mut trained_in = run;
+    for _ in out.components() {
+        trained_in.pop();
+    }
+    let found = trained_in.join(data);
+    if found.exists() { found } else { data.to_path_buf() }
 }
 
 #[derive(Clone, Debug, serde::Serialize)]
@@ -760,6 +782,30 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    /// A run trained as `--data DATA --out RUN` in one folder finds its dataset from any other;
+    /// a path that exists as recorded, or a run moved elsewhere, keeps the recorded path.
+    #[test]
+    fn a_run_finds_its_relative_dataset_from_another_folder() {
+        use std::path::{Path, PathBuf};
+        let root = std::env::temp_dir().join(format!("radiogs-where-{}", std::process::id()));
+        let (data, out) = (PathBuf::from("scan-data"), PathBuf::from("runs/scan"));
+        std::fs::create_dir_all(root.join(&data)).unwrap();
+        std::fs::create_dir_all(root.join(&out)).unwrap();
+        let found = super::dataset_of_run(&root.join(&out), &data, &out);
+        assert_eq!(found, root.join(&data));
+        // Moved: the run's path no longer ends with the recorded out.
+        let moved = root.join("elsewhere");
+        assert_eq!(super::dataset_of_run(&moved, &data, &out), data);
+        // Found as recorded (relative to here), or absolute: unchanged.
+        assert_eq!(super::dataset_of_run(&root.join(&out), Path::new("src"), &out), Path::new("src"));
+        assert_eq!(super::dataset_of_run(&root.join(&out), &root, &out), root);
+        // Through load_run_config, as render and eval read a run.
+        let cfg = crate::train::config::TrainConfig { data: data.clone(), out: out.clone(), ..Default::default() };
+        cfg.save(&root.join(&out).join("config.toml")).unwrap();
+        assert_eq!(super::load_run_config(&root.join(&out)).unwrap().data, root.join(&data));
+        std::fs::remove_dir_all(&root).ok();
+    }
+
     use super::*;
     use rand::{RngExt, SeedableRng};
 

@@ -648,7 +648,6 @@ mod tests {
         }
     }
 
-    /// Other formats (JPEG here) are refused by name, nothing written.
     #[test]
     fn an_animation_refuses_frames_of_another_size_by_name() {
         let dir = std::env::temp_dir().join(format!("radiogs-apng-{}", std::process::id()));
@@ -665,6 +664,7 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 
+    /// Other formats (JPEG here) are refused by name, nothing written.
     #[test]
     fn unsupported_output_format_is_refused() {
         let dir = std::env::temp_dir().join(format!("radiogs-fmt-{}", std::process::id()));

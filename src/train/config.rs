@@ -716,6 +716,11 @@ mod tests {
             assert!(err.contains("albedo_init_hue"), "{err}");
         }
         assert!(TrainConfig { albedo_init_hue: 1.0, ..TrainConfig::default() }.validate().is_ok());
+        for bad in [-0.01, 1.0, f32::NAN] {
+            let err =
+                TrainConfig { prune_contribution: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+            assert!(err.contains("prune_contribution"), "{err}");
+        }
         for bad in [0, MAX_DOWNSCALE + 1, 800] {
             let err = TrainConfig { resolution: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
             assert!(err.contains("resolution") && err.contains("not a width"), "{err}");

@@ -295,7 +295,7 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
     assert!(p_half > 28.0 && p_full > 20.0, "PSNR at 16² {p_half}, at 32² {p_full}");
     // `render --run` draws the test views at the run's factor, at the one given, or at
     // --width × --height; an orbit keeps that size.
-    use radiogs::commands::render::{ImageFormat, RenderArgs, RenderMode};
+    use radiogs::commands::render::RenderArgs;
     for (resolution, given, orbit, size) in [
         (None, None, None, (16, 16)),
         (Some(1), None, None, (32, 32)),
@@ -305,22 +305,12 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
         let out = run.join(format!("render-{}-{}-{}", size.0, size.1, orbit.is_some()));
         radiogs::commands::render::run(&RenderArgs {
             run: Some(run.clone()),
-            ply: None,
-            cameras: None,
             out: out.clone(),
-            k: 8,
-            two_sided: false,
-            format: ImageFormat::Png,
-            aux: false,
             width: given.map(|g: (u32, u32)| g.0),
             height: given.map(|g| g.1),
             resolution,
-            mode: RenderMode::Surfel,
-            envmap: None,
-            filter_inv_square: None,
-            display_stop: 0.0,
             orbit,
-            orbit_elevation: None,
+            ..RenderArgs::default()
         })
         .unwrap();
         let first = if orbit.is_some() { "orbit_000.png" } else { "r_0.png" };

@@ -174,26 +174,14 @@ const TURNTABLE_MODES: [(crate::commands::render::RenderMode, &str); 2] =
 /// The object once around, as the learned radiance and as the PBR render under the recovered
 /// light (`radiogs render --run RUN --orbit 36 --mode surfel|pbr`).
 pub fn write_turntables(dir: &Path, run: &Path) -> anyhow::Result<()> {
-    use crate::commands::render::{ImageFormat, RenderArgs};
+    use crate::commands::render::RenderArgs;
     for (mode, name) in TURNTABLE_MODES {
         crate::commands::render::run(&RenderArgs {
             run: Some(run.to_path_buf()),
-            ply: None,
-            cameras: None,
             out: dir.join(name),
-            k: 8,
-            two_sided: false,
-            filter_inv_square: None,
-            format: ImageFormat::Png,
-            aux: false,
-            width: None,
-            height: None,
-            resolution: None,
-            display_stop: 0.0,
             mode,
-            envmap: None,
             orbit: Some(TURNTABLE_FRAMES),
-            orbit_elevation: None,
+            ..RenderArgs::default()
         })?;
     }
     Ok(())

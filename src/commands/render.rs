@@ -132,6 +132,32 @@ pub struct RenderArgs {
     pub orbit_elevation: Option<f32>,
 }
 
+/// The CLI's defaults (window 8, PNG, exact, surfel mode) with no scene and an empty `out`, for
+/// callers that set a few fields.
+impl Default for RenderArgs {
+    fn default() -> Self {
+        RenderArgs {
+            run: None,
+            ply: None,
+            cameras: None,
+            out: PathBuf::new(),
+            k: default_k(),
+            two_sided: false,
+            filter_inv_square: None,
+            format: ImageFormat::Png,
+            aux: false,
+            width: None,
+            height: None,
+            resolution: None,
+            display_stop: 0.0,
+            mode: RenderMode::Surfel,
+            envmap: None,
+            orbit: None,
+            orbit_elevation: None,
+        }
+    }
+}
+
 /// Frames per second of `render --orbit`'s animation.
 pub const ORBIT_FPS: u16 = 24;
 
@@ -401,25 +427,7 @@ mod tests {
 
     /// `render --ply PLY --cameras CAMS --out OUT` with every other option at its default.
     fn ply_args(ply: PathBuf, cams: PathBuf, out: &std::path::Path) -> RenderArgs {
-        RenderArgs {
-            run: None,
-            ply: Some(ply),
-            cameras: Some(cams),
-            out: out.to_path_buf(),
-            k: 8,
-            two_sided: false,
-            format: ImageFormat::Png,
-            aux: false,
-            width: None,
-            height: None,
-            resolution: None,
-            mode: RenderMode::Surfel,
-            envmap: None,
-            filter_inv_square: None,
-            display_stop: 0.0,
-            orbit: None,
-            orbit_elevation: None,
-        }
+        RenderArgs { ply: Some(ply), cameras: Some(cams), out: out.to_path_buf(), ..RenderArgs::default() }
     }
 
     #[test]

@@ -466,7 +466,8 @@ fn encode_png(img: &Image, path: &Path) -> Result<Vec<u8>> {
 
 /// An animated PNG (APNG, looping forever at `fps` frames per second) of 8-bit PNG files of
 /// one size, each frame exactly its file's pixels (read back as RGBA). Browsers and most image
-/// viewers play it; others show the first frame. Atomic, like every writer here.
+/// viewers play it; others show the first frame. Streamed to the file one frame at a time (a
+/// long turntable need not fit in memory), atomic like every writer here.
 pub fn write_apng(path: &Path, frames: &[PathBuf], fps: u16) -> Result<()> {
     let Some(first) = frames.first() else {
         return Err(Error::invalid(path.display().to_string(), "an animation needs at least one frame"));
@@ -474,33 +475,37 @@ pub fn write_apng(path: &Path, frames: &[PathBuf], fps: u16) -> Result<()> {
     if fps == 0 {
         return Err(Error::invalid(path.display().to_string(), "frame rate 0"));
     }
-    let (width, height) = image_dimensions(first)?;
-    let encoding_error = |e: png::EncodingError| Error::format(path, "encoding", e.to_string());
-    let mut bytes = Vec::new();
-    let mut encoder = png::Encoder::new(&mut bytes, width, height);
-    encoder.set_color(png::ColorType::Rgba);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder.set_compression(png::Compression::Fast);
-    encoder.set_filter(png::Filter::Adaptive);
     let count =
         u32::try_from(frames.len()).map_err(|_| Error::invalid(path.display().to_string(), "too many frames"))?;
-    encoder.set_animated(count, 0).map_err(encoding_error)?;
-    encoder.set_frame_delay(1, fps).map_err(encoding_error)?;
-    let mut writer = encoder.write_header().map_err(encoding_error)?;
-    for frame in frames {
-        let img = read_rgba(frame)?;
-        if (img.width, img.height) != (width, height) {
+    // Sizes from the headers first, so that a wrong frame is named before anything is written.
+    let (width, height) = image_dimensions(first)?;
+    for frame in &frames[1..] {
+        let (w, h) = image_dimensions(frame)?;
+        if (w, h) != (width, height) {
             return Err(Error::invalid(
                 frame.display().to_string(),
-                format!("is {} × {}, the animation's first frame {width} × {height}", img.width, img.height),
+                format!("is {w} × {h}, the animation's first frame {width} × {height}"),
             ));
         }
-        // read_rgba gives k / 255 for 8-bit samples; this rounds back to k exactly.
-        let pixels: Vec<u8> = img.data.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
-        writer.write_image_data(&pixels).map_err(encoding_error)?;
     }
-    writer.finish().map_err(encoding_error)?;
-    write_atomic(path, &bytes)
+    let other = |e: &dyn std::fmt::Display| std::io::Error::other(e.to_string());
+    crate::io::atomic::write_atomic_with(path, |out| {
+        let mut encoder = png::Encoder::new(out, width, height);
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.set_depth(png::BitDepth::Eight);
+        encoder.set_compression(png::Compression::Fast);
+        encoder.set_filter(png::Filter::Adaptive);
+        encoder.set_animated(count, 0).map_err(|e| other(&e))?;
+        encoder.set_frame_delay(1, fps).map_err(|e| other(&e))?;
+        let mut writer = encoder.write_header().map_err(|e| other(&e))?;
+        for frame in frames {
+            let img = read_rgba(frame).map_err(|e| other(&e))?;
+            // read_rgba gives k / 255 for 8-bit samples; this rounds back to k exactly.
+            let pixels: Vec<u8> = img.data.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+            writer.write_image_data(&pixels).map_err(|e| other(&e))?;
+        }
+        writer.finish().map_err(|e| other(&e))
+    })
 }
 
 /// OpenEXR, ZIP-compressed scan lines in increasing order. The exr default (tiles in

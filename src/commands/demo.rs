@@ -20,14 +20,16 @@ pub struct DemoArgs {
     /// Image size of the synthesised views.
     #[arg(long, default_value_t = 128)]
     pub res: u32,
-    /// Training iterations of the nvs (geometry) stage.
-    #[arg(long, default_value_t = 3000)]
+    /// Training iterations of the nvs (geometry) stage (2500: every metric of 3000 within
+    /// 0.07 dB and 0.05°, 20 s sooner; BENCHMARKS.md, session 51).
+    #[arg(long, default_value_t = 2500)]
     pub iters: u32,
     /// Iterations of the inverse-rendering stage.
     #[arg(long, default_value_t = 1500)]
     pub inverse_iters: u32,
-    /// Finetune iterations per light when relighting.
-    #[arg(long, default_value_t = 150)]
+    /// Finetune iterations per light when relighting (100: within 0.02 dB of 150; the finetune
+    /// starts from the traced relighting's incident light).
+    #[arg(long, default_value_t = 100)]
     pub relight_iters: u32,
     /// Random seed.
     #[arg(long, default_value_t = 0)]

@@ -20,8 +20,9 @@ pub struct DemoArgs {
     /// Image size of the synthesised views.
     #[arg(long, default_value_t = 128)]
     pub res: u32,
-    /// Training iterations of the nvs (geometry) stage (2500: every metric of 3000 within
-    /// 0.07 dB and 0.05°, 20 s sooner; BENCHMARKS.md, session 51).
+    /// Training iterations of the nvs (geometry) stage (2500: every metric within 0.06 dB and
+    /// 0.05° of 3000's, and the inverse stage, starting with 8 % fewer surfels, 10 % faster:
+    /// ≈ 50 s sooner in all; BENCHMARKS.md, session 51).
     #[arg(long, default_value_t = 2500)]
     pub iters: u32,
     /// Iterations of the inverse-rendering stage.

@@ -272,8 +272,9 @@ fn lambert_plane_albedo_converges_under_known_light() {
     let demo = temp_dir("report");
     radiogs::commands::demo::write_turntables(&demo.join("orbit"), &run).unwrap();
     let report = demo.join("report.html");
-    radiogs::commands::demo::write_report(&report, &data, &run, 1.0).unwrap();
+    radiogs::commands::demo::write_report(&report, &data, &run, &[("synthesis", 20.3), ("training", 361.0)]).unwrap();
     let html = std::fs::read_to_string(&report).unwrap();
+    assert!(html.contains("6 min 21 s in all: synthesis 20.3 s, training 6 min 01 s"), "step times in the report");
     assert_eq!(html.matches("data:image/apng;base64,").count(), 2, "two turntables inline");
     for mode in ["surfel", "pbr"] {
         assert!(demo.join(format!("orbit/{mode}/orbit_035.png")).is_file(), "{mode}");

@@ -80,6 +80,9 @@ fn check_kept_dataset(data: &Path, args: &DemoArgs) -> anyhow::Result<()> {
 
 pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
+    // Each step's wall time, for the closing line and the report.
+    let mut steps: Vec<(&str, f64)> = Vec::new();
+    let step = std::time::Instant::now();
     let data = args.out.join("data");
     let run = args.out.join("run");
     let cfg = {
@@ -134,6 +137,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         .args;
         eprintln!("[1/4] synthesising '{}' into {}", args.scene, data.display());
         crate::synth::run(&synth)?;
+        steps.push(("synthesis", step.elapsed().as_secs_f64()));
     } else {
         check_kept_dataset(&data, args)?;
         eprintln!("[1/4] using the dataset already in {}", data.display());
@@ -144,7 +148,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         args.inverse_iters,
         run.display()
     );
+    let step = std::time::Instant::now();
     crate::train::run(&cfg)?;
+    steps.push(("training", step.elapsed().as_secs_f64()));
+    let step = std::time::Instant::now();
     eprintln!("[3/4] evaluating, and relighting under the dataset's other lights (traced and finetuned)");
     crate::eval::run(&crate::eval::EvalArgs {
         run: run.clone(),
@@ -157,14 +164,37 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         relight_bounces: crate::relight::TRACED_BOUNCES,
         resolution: None,
     })?;
+    steps.push(("evaluation and relighting", step.elapsed().as_secs_f64()));
+    let step = std::time::Instant::now();
     eprintln!("[4/4] turntables and the report");
     write_turntables(&args.out.join("orbit"), &run)?;
+    steps.push(("turntables", step.elapsed().as_secs_f64()));
+    let step = std::time::Instant::now();
     let report = args.out.join("report.html");
-    write_report(&report, &data, &run, started.elapsed().as_secs_f64())?;
+    write_report(&report, &data, &run, &steps)?;
     let overview = args.out.join("overview.png");
     write_overview(&overview, &data, &run, 2)?;
+    steps.push(("report", step.elapsed().as_secs_f64()));
+    eprintln!("demo: {} (the build before it not counted)", time_split(started.elapsed().as_secs_f64(), &steps));
     println!("report: {} (picture: {})", report.display(), overview.display());
     Ok(())
+}
+
+/// A duration as people read it: "45.3 s", "6 min 01 s".
+fn minutes(seconds: f64) -> String {
+    // Below 59.95 s the one decimal never rounds up to "60.0 s".
+    if seconds < 59.95 {
+        format!("{seconds:.1} s")
+    } else {
+        let s = seconds.round() as u64;
+        format!("{} min {:02} s", s / 60, s % 60)
+    }
+}
+
+/// "11 min 16 s in all: synthesis 20.3 s, training 6 min 01 s, …".
+fn time_split(total: f64, steps: &[(&str, f64)]) -> String {
+    let parts: Vec<String> = steps.iter().map(|(name, s)| format!("{name} {}", minutes(*s))).collect();
+    format!("{} in all: {}", minutes(total), parts.join(", "))
 }
 
 /// Frames of each turntable in the report (24 frames/s: a turn in 1.5 s).
@@ -320,7 +350,7 @@ fn svg_curve(points: &[(f64, f64)], label: &str) -> String {
     )
 }
 
-pub fn write_report(path: &Path, data: &Path, run: &Path, seconds: f64) -> anyhow::Result<()> {
+pub fn write_report(path: &Path, data: &Path, run: &Path, steps: &[(&str, f64)]) -> anyhow::Result<()> {
     let metrics_path = run.join("eval/metrics.json");
     let metrics: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(&metrics_path).with_context(|| format!("{}: cannot read", metrics_path.display()))?,
@@ -333,10 +363,10 @@ pub fn write_report(path: &Path, data: &Path, run: &Path, seconds: f64) -> anyho
     );
     let _ = write!(
         html,
-        "<h1>radiogs demo</h1><p>Dataset <code>{}</code>, run <code>{}</code>, whole demo {:.0} s.</p>",
+        "<h1>radiogs demo</h1><p>Dataset <code>{}</code>, run <code>{}</code>. {} (the build before it not counted).</p>",
         data.display(),
         run.display(),
-        seconds
+        time_split(steps.iter().map(|s| s.1).sum(), steps)
     );
     html.push_str("<h2>Metrics (test views)</h2><table><tr><th>metric</th><th>value</th></tr>");
     if let Some(mean) = metrics.get("mean").and_then(|m| m.as_object()) {
@@ -493,6 +523,19 @@ pub fn write_report(path: &Path, data: &Path, run: &Path, seconds: f64) -> anyho
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn durations_read_as_seconds_then_minutes() {
+        assert_eq!(super::minutes(0.0), "0.0 s");
+        assert_eq!(super::minutes(59.94), "59.9 s");
+        assert_eq!(super::minutes(59.96), "1 min 00 s");
+        assert_eq!(super::minutes(60.0), "1 min 00 s");
+        assert_eq!(super::minutes(676.4), "11 min 16 s");
+        assert_eq!(
+            super::time_split(90.0, &[("training", 61.0), ("report", 2.5)]),
+            "1 min 30 s in all: training 1 min 01 s, report 2.5 s"
+        );
+    }
+
     #[test]
     fn base64_matches_rfc4648_vectors() {
         for (input, want) in [("", ""), ("f", "Zg=="), ("fo", "Zm8="), ("foo", "Zm9v"), ("foobar", "Zm9vYmFy")] {

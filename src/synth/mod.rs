@@ -365,7 +365,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
             "clamp": "none",
             "denoiser": "none",
         },
-        "brdf": "f = (1 − E(n·ω_o, r))·a/π + F·D·G/(4 NoL NoV), E the GGX lobe's directional albedo (split-sum LUT: the diffuse base under the specular layer, as Blender's Principled BSDF); GGX D with α = r²; Smith–Schlick G, k = (r+1)²/8; Schlick F, f0 = 0.04; cosines clamped to [1e-6, 1]",
+        "brdf": "f = (1 − E(n·ω_o, r))·a/π + F·D·G/(4 NoL NoV), E the GGX lobe's directional albedo (split-sum LUT: the diffuse base under the specular layer, as Blender's Principled BSDF); GGX D with α = r²; height-correlated Smith G = 1/(1 + Λ(n·ω_i) + Λ(n·ω_o)); Schlick F, f0 = 0.04; cosines clamped to [1e-6, 1]",
         "color": "rgba/albedo PNGs: linear -> clip[0,1] -> sRGB OETF; straight (un-premultiplied) alpha; alpha = pixel coverage (fraction of camera samples hitting geometry); background transparent (0,0,0,0).",
         "cameras": {
             "radius": scene.rig.radius, "elev_min": scene.rig.elev_min, "elev_max": scene.rig.elev_max,

@@ -1,7 +1,9 @@
 //! Experiment: how much of the per-surfel shading error is the surfels' own normals? Writes a
 //! copy of a run whose surfels are turned (minimal rotation, the normal's side kept) to one of:
 //! - `DATA=dir` (the oracle): the surface normal of the nearest true object of the dataset's
-//!   README.json, for surfels within 3 cm of it;
+//!   README.json, for surfels within 3 cm of it; with `SNAP=d` (scene units) also every surfel
+//!   up to d inside an object, and each of those moved onto the true surface (a geometry oracle:
+//!   the surfels nvs put behind a glossy surface brought to it);
 //! - `CONSENSUS=dir` (a dataset): the blend-weighted mean of the depth-derived normals
 //!   (finite differences of the rendered expected depth) of the training pixels the surfel is
 //!   composited into, where that weight exceeds `MIN_WEIGHT` (default 1 pixel);
@@ -30,7 +32,7 @@ fn main() -> anyhow::Result<()> {
     let (run, out) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
     let radius: f32 = args.get(3).map(|v| v.parse()).transpose().context("R")?.unwrap_or(0.04);
     let mode = match (std::env::var("DATA"), std::env::var("CONSENSUS")) {
-        (Ok(d), _) => Mode::Truth(scene_readme::load(std::path::Path::new(&d))?),
+        (Ok(d), _) => Mode::Truth(scene_readme::load(std::path::Path::new(&d))?, env_number("SNAP", 0.0)?),
         (_, Ok(d)) => Mode::Consensus { data: PathBuf::from(d), min_weight: env_number("MIN_WEIGHT", 1.0)? },
         // `FLAT`: the largest smallest / middle eigenvalue ratio counted as flat.
         _ => Mode::Plane { radius, flat_ratio: env_number("FLAT", 0.05)? },
@@ -67,12 +69,12 @@ fn main() -> anyhow::Result<()> {
 }
 
 /// `DATA=dir`: the oracle instead — the surface normal of the true object nearest to p, when p
-/// lies within 3 cm of it.
-fn oracle_normal(readme: &scene_readme::SceneReadme, p: [f32; 3]) -> Option<[f64; 3]> {
+/// lies within 3 cm of it or, with `snap` > 0, up to `snap` inside it; with the signed distance.
+fn oracle_normal(readme: &scene_readme::SceneReadme, p: [f32; 3], snap: f64) -> Option<([f64; 3], f64)> {
     let p = p.map(|x| x as f64);
     let o = &readme.objects[scene_readme::nearest(&readme.objects, p)];
     let d = o.sdf(p);
-    if d.abs() > 0.03 {
+    if d > 0.03 || d < -(0.03f64.max(snap)) {
         return None;
     }
     let e = 1e-5;
@@ -82,7 +84,7 @@ fn oracle_normal(readme: &scene_readme::SceneReadme, p: [f32; 3]) -> Option<[f64
         (o.sdf(q) - d) / e
     });
     let l = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt().max(1e-12);
-    Some(g.map(|x| x / l))
+    Some((g.map(|x| x / l), d))
 }
 
 /// `CONSENSUS=dir` (a dataset): each surfel's normal becomes the blend-weighted mean of the
@@ -167,9 +169,21 @@ fn turned_to(r: [[f32; 3]; 3], target: [f64; 3]) -> Option<([f32; 4], f64)> {
     Some((quat_from_columns(cols), dot.acos().to_degrees()))
 }
 
-/// Every surfel turned to the true surface's normal where [`oracle_normal`] gives one.
-fn to_truth(s: &mut Surfels, readme: &scene_readme::SceneReadme) {
-    let targets: Vec<Option<[f64; 3]>> = s.means.iter().map(|&p| oracle_normal(readme, p)).collect();
+/// Every surfel turned to the true surface's normal where [`oracle_normal`] gives one; with
+/// `snap` > 0 each of those also moved onto the surface (p − d·n, d its signed distance).
+fn to_truth(s: &mut Surfels, readme: &scene_readme::SceneReadme, snap: f64) {
+    let found: Vec<Option<([f64; 3], f64)>> = s.means.iter().map(|&p| oracle_normal(readme, p, snap)).collect();
+    if snap > 0.0 {
+        let mut moved = 0usize;
+        for (mean, f) in s.means.iter_mut().zip(&found) {
+            if let Some((n, d)) = *f {
+                *mean = std::array::from_fn(|a| (mean[a] as f64 - d * n[a]) as f32);
+                moved += 1;
+            }
+        }
+        println!("{moved} surfels moved onto the true surface (up to {snap} inside it)");
+    }
+    let targets: Vec<Option<[f64; 3]>> = found.iter().map(|f| f.map(|(n, _)| n)).collect();
     turn_all(s, &targets, "the true surface's normal");
 }
 
@@ -259,14 +273,14 @@ fn flatten(s: &mut Surfels, radius: f32, flat_ratio: f64) {
 
 /// Where the normals are turned to.
 enum Mode {
-    Truth(scene_readme::SceneReadme),
+    Truth(scene_readme::SceneReadme, f64),
     Consensus { data: PathBuf, min_weight: f64 },
     Plane { radius: f32, flat_ratio: f64 },
 }
 
 fn adjust(s: &mut Surfels, mode: &Mode, window: usize, filter: f32, two_sided: bool) -> anyhow::Result<()> {
     match mode {
-        Mode::Truth(readme) => to_truth(s, readme),
+        Mode::Truth(readme, snap) => to_truth(s, readme, *snap),
         Mode::Consensus { data, min_weight } => consensus(s, data, *min_weight, two_sided, window, filter)?,
         Mode::Plane { radius, flat_ratio } => flatten(s, *radius, *flat_ratio),
     }

@@ -32,7 +32,11 @@ fn main() -> anyhow::Result<()> {
     let (run, out) = (PathBuf::from(&args[1]), PathBuf::from(&args[2]));
     let radius: f32 = args.get(3).map(|v| v.parse()).transpose().context("R")?.unwrap_or(0.04);
     let mode = match (std::env::var("DATA"), std::env::var("CONSENSUS")) {
-        (Ok(d), _) => Mode::Truth(scene_readme::load(std::path::Path::new(&d))?, env_number("SNAP", 0.0)?),
+        (Ok(d), _) => {
+            let snap = env_number("SNAP", 0.0)?;
+            anyhow::ensure!(snap.is_finite() && snap >= 0.0, "SNAP={snap}: must be a distance ≥ 0 (scene units)");
+            Mode::Truth(scene_readme::load(std::path::Path::new(&d))?, snap)
+        }
         (_, Ok(d)) => Mode::Consensus { data: PathBuf::from(d), min_weight: env_number("MIN_WEIGHT", 1.0)? },
         // `FLAT`: the largest smallest / middle eigenvalue ratio counted as flat.
         _ => Mode::Plane { radius, flat_ratio: env_number("FLAT", 0.05)? },

@@ -48,20 +48,6 @@ pub enum Specular {
     Traced,
 }
 
-/// How the inverse stage's PBR image is composited from the surfels.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum PbrComposite {
-    /// Each surfel's PBR colour (its albedo times its own irradiance, plus its specular part)
-    /// alpha-blended per pixel (DESIGN §1, RadioGS).
-    #[default]
-    Surfel,
-    /// The blended albedo times the blended diffuse irradiance, plus the blended specular part
-    /// (deferred in the albedo, as IRGS shades): a surfel's albedo no longer answers for its own
-    /// irradiance error, only for the pixel's. Not in the published method.
-    Deferred,
-}
-
 /// Largest `--resolution` factor (beyond it a value is more likely a width meant as 3DGS's
 /// `-r 1600`, which radiogs does not take).
 pub const MAX_DOWNSCALE: u32 = 16;
@@ -390,12 +376,6 @@ pub struct TrainConfig {
     /// reflections a few samples cannot resolve).
     #[arg(long, value_enum, default_value_t = Specular::Mc)]
     pub specular: Specular,
-    /// How the inverse stage's PBR image is composited: `surfel` (each surfel's PBR colour
-    /// blended, as published) or `deferred` (blended albedo × blended irradiance + blended
-    /// specular). A run saved before the setting reads as `surfel`.
-    #[arg(long, value_enum, default_value_t = PbrComposite::Surfel)]
-    #[serde(default)]
-    pub pbr_composite: PbrComposite,
     /// Rays per shaded surfel and iteration of `--specular traced` [2].
     #[arg(long, default_value_t = DEFAULT_SPECULAR_RAYS)]
     #[serde(default = "default_specular_rays")]

@@ -44,7 +44,7 @@ use crate::shade::traced_specular::{SpecularSamples, TracedSpecular};
 use crate::surfels::{Surfels, albedo_to_logit, logit};
 use crate::trace::{TraceSettings, Tracer};
 use crate::train::checkpoint::Checkpoint;
-use crate::train::config::{Background, PbrComposite, Specular, TrainConfig};
+use crate::train::config::{Background, Specular, TrainConfig};
 use crate::train::interrupt;
 use anyhow::Context;
 use rand::RngExt;
@@ -54,10 +54,6 @@ use std::time::Instant;
 
 /// Feature channels rasterised in training: linear L_pbr (3), albedo (3), roughness (1).
 pub const TRAIN_CHANNELS: usize = 7;
-/// Feature channels rasterised in training with `--pbr-composite deferred`: linear specular
-/// (3), albedo (3), roughness (1), linear diffuse irradiance factor E (3, the Lambert part with
-/// albedo 1: the pixel's diffuse colour is its blended albedo times its blended E).
-pub const DEFERRED_CHANNELS: usize = 10;
 /// Feature channels for pictures and evaluation: the training ones, then linear L_indirect
 /// (3) and cosine-weighted visibility (1).
 pub const VIEW_CHANNELS: usize = 11;
@@ -303,15 +299,6 @@ pub struct SurfelShading {
     pub traced: SpecularSamples,
     traced_direct: Vec<[f32; 3]>,
     traced_indirect: Vec<[f32; 3]>,
-    /// Deferred compositing (set by the caller; needs [`DEFERRED_CHANNELS`]): `direct` and
-    /// `indirect` hold the specular part only and `irradiance` (per active surfel) the Lambert
-    /// part with albedo 1, direct + indirect.
-    pub deferred: bool,
-    pub irradiance: Vec<[f32; 3]>,
-    irr_direct: Vec<[f32; 3]>,
-    irr_indirect: Vec<[f32; 3]>,
-    /// All-ones albedo for the irradiance pass.
-    pub ones: Vec<[f32; 3]>,
 }
 
 impl SurfelShading {
@@ -351,28 +338,7 @@ impl SurfelShading {
         self.indirect.resize(m, [0.0; 3]);
         let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &self.view);
         inp.specular = matches!(lobe, SpecularLobe::Cached);
-        if self.deferred {
-            assert!(channels == DEFERRED_CHANNELS, "deferred shading has its own channels");
-            // The Lambert part with albedo 1, then the cached specular lobe alone.
-            self.ones.resize(n, [1.0; 3]);
-            self.irr_direct.resize(m, [0.0; 3]);
-            self.irr_indirect.resize(m, [0.0; 3]);
-            let mut lambert = cache.inputs(&self.ones, &mats.roughness, &mats.normal, &self.view);
-            lambert.specular = false;
-            shade_subset(&lambert, env, &self.active, &mut self.irr_direct, &mut self.irr_indirect)
-                .expect("sized above");
-            self.irradiance.clear();
-            self.irradiance
-                .extend(self.irr_direct.iter().zip(&self.irr_indirect).map(|(d, i)| [0, 1, 2].map(|c| d[c] + i[c])));
-            if inp.specular {
-                inp.lambert = false;
-                shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
-            } else {
-                self.direct.iter_mut().chain(self.indirect.iter_mut()).for_each(|v| *v = [0.0; 3]);
-            }
-        } else {
-            shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
-        }
+        shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
         let traced_env = match &lobe {
             SpecularLobe::Traced(spec) => {
                 self.traced.trace(spec, &self.active, &mats.roughness, &mats.normal, &self.view);
@@ -429,9 +395,6 @@ impl SurfelShading {
             let f = &mut self.features[i as usize * channels..(i as usize + 1) * channels];
             for ch in 0..3 {
                 f[ch] = self.direct[k][ch] + self.indirect[k][ch];
-                if self.deferred {
-                    f[7 + ch] = self.irradiance[k][ch];
-                }
                 if channels >= VIEW_CHANNELS {
                     f[7 + ch] = self.indirect[k][ch];
                 }
@@ -534,56 +497,6 @@ struct Scratch {
     albedo_chroma: AlbedoChroma,
     /// The forward's per-pixel hits, replayed by the backward (buffers reused).
     recorder: raster::HitRecorder,
-    /// Deferred compositing: the pixels' linear PBR colour and its gradient (3 per pixel),
-    /// the irradiance pass's upstream gradient and the specular pass's gradients.
-    deferred_rgb: Vec<f32>,
-    v_deferred: Vec<f32>,
-    v_sub_irr: Vec<[f32; 3]>,
-    sub_spec: SubsetGrads,
-}
-
-/// Below this rendered opacity the deferred colour divides by it no further (and passes no
-/// gradient to it): the blended albedo and irradiance are both premultiplied by α.
-const DEFERRED_MIN_ALPHA: f32 = 0.02;
-
-/// The deferred PBR colour of every pixel, A·E/α + S, from rasterised `features` laid out as
-/// [`DEFERRED_CHANNELS`] (A albedo at 3, E irradiance at 7, S specular at 0, all premultiplied).
-fn deferred_composite(features: &[f32], alpha: &[f32], out: &mut Vec<f32>) {
-    let ch = DEFERRED_CHANNELS;
-    out.clear();
-    out.extend(alpha.iter().enumerate().flat_map(|(p, &a)| {
-        let f = &features[p * ch..(p + 1) * ch];
-        let inv = 1.0 / a.max(DEFERRED_MIN_ALPHA);
-        [0, 1, 2].map(|c| f[3 + c] * f[7 + c] * inv + f[c])
-    }));
-}
-
-/// Backward of [`deferred_composite`]: the colour gradient `v_rgb` into the feature and alpha
-/// gradients.
-fn deferred_composite_backward(
-    features: &[f32],
-    alpha: &[f32],
-    v_rgb: &[f32],
-    v_features: &mut [f32],
-    v_alpha: &mut [f32],
-) {
-    let ch = DEFERRED_CHANNELS;
-    for (p, &a) in alpha.iter().enumerate() {
-        let f = &features[p * ch..(p + 1) * ch];
-        let vf = &mut v_features[p * ch..(p + 1) * ch];
-        let inv = 1.0 / a.max(DEFERRED_MIN_ALPHA);
-        let mut va = 0.0;
-        for c in 0..3 {
-            let g = v_rgb[p * 3 + c];
-            vf[c] += g;
-            vf[3 + c] += g * f[7 + c] * inv;
-            vf[7 + c] += g * f[3 + c] * inv;
-            va -= g * f[3 + c] * f[7 + c] * inv * inv;
-        }
-        if a > DEFERRED_MIN_ALPHA {
-            v_alpha[p] += va;
-        }
-    }
 }
 
 fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
@@ -642,11 +555,9 @@ fn iterate(
     let cam = &images.cameras[view_index];
     let (w, h) = (cam.width as usize, cam.height as usize);
     let np = w * h;
-    let deferred = cfg.pbr_composite == PbrComposite::Deferred;
-    let ch = if deferred { DEFERRED_CHANNELS } else { TRAIN_CHANNELS };
+    let ch = TRAIN_CHANNELS;
     let t0 = Instant::now();
     sc.mats.update(s);
-    sc.shading.deferred = deferred;
     let lobe = specular_lobe(cfg, state, env_full, split_sum, tracer);
     sc.shading.compute(s, &sc.mats, &state.cache, env, lobe, cam, ch);
     let t1 = Instant::now();
@@ -696,34 +607,16 @@ fn iterate(
 
     // PBR image: linear features over the linear background, then sRGB.
     let wp = cfg.lambda_pbr;
-    let pbr = if deferred {
-        deferred_composite(&out.features, &out.alpha, &mut sc.deferred_rgb);
-        sc.v_deferred.clear();
-        sc.v_deferred.resize(np * 3, 0.0);
-        let img = PbrImage {
-            features: &sc.deferred_rgb,
-            channels: 3,
-            alpha: &out.alpha,
-            bg,
-            gt: &sc.gt,
-            gt_alpha: alpha,
-            size: (w, h),
-        };
-        let pbr = sc.pbr_image.evaluate(&img, wp, &mut sc.v_deferred, &mut g.v_alpha);
-        deferred_composite_backward(&out.features, &out.alpha, &sc.v_deferred, &mut g.v_features, &mut g.v_alpha);
-        pbr
-    } else {
-        let img = PbrImage {
-            features: &out.features,
-            channels: ch,
-            alpha: &out.alpha,
-            bg,
-            gt: &sc.gt,
-            gt_alpha: alpha,
-            size: (w, h),
-        };
-        sc.pbr_image.evaluate(&img, wp, &mut g.v_features, &mut g.v_alpha)
+    let img = PbrImage {
+        features: &out.features,
+        channels: ch,
+        alpha: &out.alpha,
+        bg,
+        gt: &sc.gt,
+        gt_alpha: alpha,
+        size: (w, h),
     };
+    let pbr = sc.pbr_image.evaluate(&img, wp, &mut g.v_features, &mut g.v_alpha);
     (l.pbr_l1, l.pbr_dssim, l.psnr_pbr) = (pbr.l1, pbr.dssim, pbr.psnr);
     l.total += wp * (l.pbr_l1 + 0.2 * l.pbr_dssim);
     if cfg.lambda_mask_inverse > 0.0 {
@@ -795,49 +688,8 @@ fn iterate(
     }));
     let mut inp = state.cache.inputs(&sc.mats.albedo, &sc.mats.roughness, &sc.mats.normal, &sh.view);
     inp.specular = matches!(lobe, SpecularLobe::Cached);
-    if deferred {
-        // The irradiance pass (albedo 1, Lambert only): its albedo gradient is not the
-        // surfels' (their albedo enters through the albedo channel).
-        sc.v_sub_irr.clear();
-        sc.v_sub_irr.extend(sh.active.iter().map(|&i| {
-            let f = &sc.v_feat[i as usize * ch + 7..i as usize * ch + 10];
-            [f[0], f[1], f[2]]
-        }));
-        let mut lambert = state.cache.inputs(&sh.ones, &sc.mats.roughness, &sc.mats.normal, &sh.view);
-        lambert.specular = false;
-        shade_subset_backward(&lambert, env, &sh.active, &sc.v_sub_irr, &sc.v_sub_irr, Detach::default(), &mut sc.sub)
-            .expect("sized above");
-        sc.sub.v_albedo.iter_mut().for_each(|v| *v = [0.0; 3]);
-        if inp.specular {
-            inp.lambert = false;
-            shade_subset_backward(
-                &inp,
-                env,
-                &sh.active,
-                &sc.v_sub_pbr,
-                &sc.v_sub_pbr,
-                Detach::default(),
-                &mut sc.sub_spec,
-            )
-            .expect("sized above");
-            let (sub, spec) = (&mut sc.sub, &sc.sub_spec);
-            for k in 0..sub.v_roughness.len() {
-                sub.v_roughness[k] += spec.v_roughness[k];
-                for c in 0..3 {
-                    sub.v_normal[k][c] += spec.v_normal[k][c];
-                    sub.v_view[k][c] += spec.v_view[k][c];
-                }
-            }
-            for (d, t) in sub.v_env.iter_mut().zip(&spec.v_env) {
-                for c in 0..3 {
-                    d[c] += t[c];
-                }
-            }
-        }
-    } else {
-        shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
-            .expect("sized above");
-    }
+    shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
+        .expect("sized above");
     if let Some(ss) = split_sum {
         let grads = sc.ss_grads.get_or_insert_with(|| ss.zero_grads());
         sh.split_sum_backward(ss, &sc.mats, &sc.v_sub_pbr, &mut sc.sub, grads);
@@ -1173,83 +1025,6 @@ pub fn run_until(
 mod tests {
     use super::*;
     use crate::shade::splitsum::BrdfLut;
-
-    /// The deferred colour A·E/α + S against central differences in f64 of every feature and
-    /// of α, on random pixels including one below the α clamp (no α gradient there).
-    #[test]
-    fn deferred_composite_gradients_match_finite_differences() {
-        use rand::SeedableRng;
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
-        let np = 6;
-        let ch = DEFERRED_CHANNELS;
-        let mut features: Vec<f32> = (0..np * ch).map(|_| rng.random_range(0.05..1.5)).collect();
-        let mut alpha: Vec<f32> = (0..np).map(|_| rng.random_range(0.1..1.0)).collect();
-        alpha[2] = DEFERRED_MIN_ALPHA * 0.5;
-        let weights: Vec<f32> = (0..np * 3).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let loss = |f: &[f32], a: &[f32]| -> f64 {
-            let mut out = Vec::new();
-            deferred_composite(f, a, &mut out);
-            out.iter().zip(&weights).map(|(&o, &w)| o as f64 * w as f64).sum()
-        };
-        let (mut vf, mut va) = (vec![0.0; np * ch], vec![0.0; np]);
-        deferred_composite_backward(&features, &alpha, &weights, &mut vf, &mut va);
-        let h = 1e-3f32;
-        for k in 0..np * ch {
-            if k % ch == 6 {
-                assert_eq!(vf[k], 0.0, "roughness takes no gradient from the colour");
-                continue;
-            }
-            let x = features[k];
-            features[k] = x + h;
-            let up = loss(&features, &alpha);
-            features[k] = x - h;
-            let down = loss(&features, &alpha);
-            features[k] = x;
-            let fd = (up - down) / (2.0 * h as f64);
-            assert!((fd - vf[k] as f64).abs() < 2e-3 * (1.0 + fd.abs()), "feature {k}: fd {fd} vs {}", vf[k]);
-        }
-        for p in 0..np {
-            let x = alpha[p];
-            alpha[p] = x + h * 0.1;
-            let up = loss(&features, &alpha);
-            alpha[p] = x - h * 0.1;
-            let down = loss(&features, &alpha);
-            alpha[p] = x;
-            let fd = (up - down) / (0.2 * h as f64);
-            assert!((fd - va[p] as f64).abs() < 5e-3 * (1.0 + fd.abs()), "alpha {p}: fd {fd} vs {}", va[p]);
-        }
-        assert_eq!(va[2], 0.0, "below the clamp α gets no gradient");
-    }
-
-    /// Deferred shading splits the surfel path's colour exactly: albedo × irradiance +
-    /// specular equals the per-surfel PBR colour (cached MC lobe, random surfels and cache).
-    #[test]
-    fn deferred_shading_splits_the_surfel_colour() {
-        let cfg = TrainConfig::default();
-        let s = Surfels::random_in_box(40, [-1.0; 3], [1.0; 3], 5);
-        let Ok(mut state) = InverseState::from_nvs(&cfg, s.clone(), &[], 1.0, None, false) else { panic!("state") };
-        let tracer = Tracer::build(&s, &trace_settings());
-        state.cache.refresh(&tracer, &s, 8, crate::shade::incident::RayStart::offset_only(1e-3), 3);
-        let mut mats = MaterialView::default();
-        mats.update(&s);
-        let env = EnvMap::constant(8, 16, [0.7, 1.1, 1.4]);
-        let cam = Camera::look_at("t", glam::Vec3::new(0.3, -4.0, 0.5), glam::Vec3::ZERO, 32, 32, 0.7);
-        let mut plain = SurfelShading::default();
-        plain.compute(&s, &mats, &state.cache, &env, SpecularLobe::Cached, &cam, TRAIN_CHANNELS);
-        let mut split = SurfelShading { deferred: true, ..Default::default() };
-        split.compute(&s, &mats, &state.cache, &env, SpecularLobe::Cached, &cam, DEFERRED_CHANNELS);
-        assert_eq!(plain.active, split.active);
-        assert!(!plain.active.is_empty());
-        for &i in &plain.active {
-            let (i, a) = (i as usize, mats.albedo[i as usize]);
-            let f = &split.features[i * DEFERRED_CHANNELS..(i + 1) * DEFERRED_CHANNELS];
-            for c in 0..3 {
-                let want = plain.features[i * TRAIN_CHANNELS + c];
-                let got = a[c] * f[7 + c] + f[c];
-                assert!((got - want).abs() < 1e-5 * (1.0 + want.abs()), "surfel {i} channel {c}: {got} vs {want}");
-            }
-        }
-    }
 
     /// A checkpoint whose cache blobs disagree in length (cut, or from another run) is refused
     /// by name when it is loaded, not left to panic in the first shading step.

@@ -41,9 +41,6 @@ pub struct EdgeAwareSmoothness {
     v_masked: Vec<f32>,
     width: usize,
     height: usize,
-    /// k in the image weight exp(−k·|S ∗ I|): 1 as published (0 is the same as 1, the
-    /// default of a struct made by `Default`).
-    pub edge_gain: f32,
 }
 
 impl EdgeAwareSmoothness {
@@ -62,13 +59,12 @@ impl EdgeAwareSmoothness {
             return;
         }
         let gt_flat = gt.as_flattened();
-        let k = if self.edge_gain > 0.0 { self.edge_gain } else { 1.0 };
         self.weights.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             for (x, wt) in row.iter_mut().enumerate() {
                 for c in 0..3 {
                     let (gx, gy) = sobel(gt_flat, 3, c, w, h, x, y);
-                    wt[c] = (-k * gx.abs()).exp();
-                    wt[3 + c] = (-k * gy.abs()).exp();
+                    wt[c] = (-gx.abs()).exp();
+                    wt[3 + c] = (-gy.abs()).exp();
                 }
             }
         });
@@ -164,8 +160,7 @@ mod tests {
     use rand::{RngExt, SeedableRng};
 
     /// Independent f64 reference: explicit replicate-padded image, 3×3 correlation, broadcasting.
-    #[allow(clippy::too_many_arguments)]
-    fn reference(data: &[f64], ch: usize, gt: &[[f32; 3]], w: usize, h: usize, mask: Option<&[f32]>, k: f64) -> f64 {
+    fn reference(data: &[f64], ch: usize, gt: &[[f32; 3]], w: usize, h: usize, mask: Option<&[f32]>) -> f64 {
         let kx = [[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]].map(|r: [f64; 3]| r.map(|v| v / 8.0));
         let grad = |f: &dyn Fn(isize, isize) -> f64, x: usize, y: usize| {
             let (mut gx, mut gy) = (0.0, 0.0);
@@ -191,7 +186,7 @@ mod tests {
                     let im = |xx: isize, yy: isize| gt[yy as usize * w + xx as usize][c] as f64;
                     let (dx, dy) = grad(&d, x, y);
                     let (ix, iy) = grad(&im, x, y);
-                    s += dx.abs() * (-k * ix.abs()).exp() + dy.abs() * (-k * iy.abs()).exp();
+                    s += dx.abs() * (-ix.abs()).exp() + dy.abs() * (-iy.abs()).exp();
                 }
             }
         }
@@ -199,7 +194,6 @@ mod tests {
         s / (3 * w * h) as f64
     }
 
-    /// Also with a sharper edge weight (`edge_gain` 20; 0, the `Default`, is the published 1).
     #[test]
     fn matches_reference_and_finite_differences() {
         let (w, h) = (13, 9);
@@ -208,11 +202,10 @@ mod tests {
         let gt: Vec<[f32; 3]> = (0..n).map(|_| [rng.random(), rng.random(), rng.random()]).collect();
         let mut mask: Vec<f32> = (0..n).map(|_| if rng.random::<f32>() < 0.8 { 1.0 } else { 0.0 }).collect();
         mask[1] = 0.5;
-        for (ch, gain) in [(1usize, 0.0f32), (3, 0.0), (1, 20.0), (3, 20.0)] {
-            let k = if gain > 0.0 { gain as f64 } else { 1.0 };
+        for ch in [1usize, 3] {
             for m in [None, Some(mask.as_slice())] {
                 let data: Vec<f32> = (0..n * ch).map(|_| rng.random()).collect();
-                let mut sm = EdgeAwareSmoothness { edge_gain: gain, ..EdgeAwareSmoothness::new() };
+                let mut sm = EdgeAwareSmoothness::new();
                 let mut v = vec![0.0f32; n * ch];
                 let l = sm.loss(&data, ch, &gt, w, h, m, 0.9, &mut v);
                 // The prepared path gives the same value and gradient.
@@ -220,7 +213,7 @@ mod tests {
                 assert_eq!(sm.loss_prepared(&data, ch, m, 0.9, &mut v2), l);
                 assert_eq!(v, v2);
                 let d64: Vec<f64> = data.iter().map(|&v| v as f64).collect();
-                let r = reference(&d64, ch, &gt, w, h, m, k);
+                let r = reference(&d64, ch, &gt, w, h, m);
                 assert!((l as f64 - r).abs() < 1e-5, "ch {ch}: {l} vs {r}");
                 let hs = 1e-7;
                 for i in 0..n * ch {
@@ -228,8 +221,7 @@ mod tests {
                     a[i] += hs;
                     let mut b = d64.clone();
                     b[i] -= hs;
-                    let fd =
-                        0.9 * (reference(&a, ch, &gt, w, h, m, k) - reference(&b, ch, &gt, w, h, m, k)) / (2.0 * hs);
+                    let fd = 0.9 * (reference(&a, ch, &gt, w, h, m) - reference(&b, ch, &gt, w, h, m)) / (2.0 * hs);
                     assert!((fd - v[i] as f64).abs() < 2e-5, "ch {ch} elem {i}: fd {fd:e} vs {:e}", v[i]);
                 }
             }

@@ -281,12 +281,6 @@ pub struct TrainConfig {
     pub lambda_smooth_roughness: f32,
     #[arg(long, default_value_t = 0.01)]
     pub lambda_smooth_normal: f32,
-    /// Edge gain k of the inverse stage's edge-aware smoothness, weight exp(−k·|∇I|) [1, as
-    /// published]: with the normalised Sobel gradient a step of Δ in the image weighs
-    /// exp(−k·Δ/2), so at k = 1 a checker edge (Δ ≈ 0.2) keeps 90 % of the penalty.
-    #[arg(long, default_value_t = 1.0)]
-    #[serde(default = "edge_gain_published")]
-    pub smooth_edge_gain: f32,
     /// Non-local albedo prior [0.1; not in the published method, 0 = off]: surfels whose SH
     /// colour has the same chromaticity are pulled towards one albedo (src/train/albedo_chroma.rs;
     /// cornell: albedo +1.1 dB, relighting +1.1–1.25 dB on two seeds, spheres unchanged;
@@ -409,11 +403,6 @@ pub struct TrainConfig {
     /// Log metrics every this many iterations.
     #[arg(long, default_value_t = 50)]
     pub log_every: u32,
-}
-
-/// What every run before `smooth_edge_gain` used: the published edge weight exp(−|∇I|).
-fn edge_gain_published() -> f32 {
-    1.0
 }
 
 /// What every run before `lambda_albedo_chroma` used: no such prior.
@@ -627,9 +616,6 @@ impl TrainConfig {
         }
         if self.log_every == 0 {
             return bad("log_every", "must be at least 1".into());
-        }
-        if !(self.smooth_edge_gain.is_finite() && self.smooth_edge_gain > 0.0) {
-            return bad("smooth_edge_gain", format!("{} must be finite and > 0", self.smooth_edge_gain));
         }
         if self.specular_rays == 0 || self.specular_rays > 256 {
             return bad("specular_rays", format!("{} must be 1..=256", self.specular_rays));

@@ -637,7 +637,6 @@ fn iterate(
         l.total += cfg.lambda_normal * l.normal;
     }
     // Edge-aware smoothness of the rendered albedo, roughness and normal maps.
-    sc.smooth.edge_gain = cfg.smooth_edge_gain;
     sc.smooth.prepare(&sc.gt, w, h);
     for (first, count, weight) in [(3usize, 3usize, cfg.lambda_smooth_albedo), (6, 1, cfg.lambda_smooth_roughness)] {
         if weight <= 0.0 {

@@ -20,12 +20,20 @@ def load(p):
 def psnr(a, b):
     return -10 * np.log10(((np.clip(a, 0, 1) - b) ** 2).mean())
 
+if len(sys.argv) not in (3, 4):
+    sys.exit('usage: albedo_segments.py DATA RUN/eval [VIEWS]')
 data, ev = sys.argv[1], sys.argv[2]
-views = int(sys.argv[3]) if len(sys.argv) > 3 else 16
+try:
+    views = int(sys.argv[3]) if len(sys.argv) > 3 else 16
+except ValueError:
+    sys.exit(f'VIEWS: {sys.argv[3]!r} is not a number of views')
 pairs = []
 for k in range(views):
-    g = load(f'{data}/test_{k:03d}/albedo.png')
-    o = load(f'{ev}/test_{k:03d}_albedo.png')
+    try:
+        g = load(f'{data}/test_{k:03d}/albedo.png')
+        o = load(f'{ev}/test_{k:03d}_albedo.png')
+    except OSError as e:
+        sys.exit(f'{e.filename}: cannot read ({e.strerror or e}); run `radiogs eval` first, or give fewer VIEWS')
     m = g[..., 3] > 127
     pairs.append((lin(g[..., :3])[m], lin(o[..., :3])[m]))
 G = np.concatenate([p[0] for p in pairs])

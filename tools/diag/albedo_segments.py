@@ -27,6 +27,8 @@ try:
     views = int(sys.argv[3]) if len(sys.argv) > 3 else 16
 except ValueError:
     sys.exit(f'VIEWS: {sys.argv[3]!r} is not a number of views')
+if views < 1:
+    sys.exit(f'VIEWS: {views} must be at least 1')
 pairs = []
 for k in range(views):
     try:
@@ -34,6 +36,9 @@ for k in range(views):
         o = load(f'{ev}/test_{k:03d}_albedo.png')
     except OSError as e:
         sys.exit(f'{e.filename}: cannot read ({e.strerror or e}); run `radiogs eval` first, or give fewer VIEWS')
+    if g.shape != o.shape:
+        sys.exit(f'{ev}/test_{k:03d}_albedo.png: {o.shape[1]}×{o.shape[0]}, the GT is {g.shape[1]}×{g.shape[0]} '
+                 '(evaluate at the dataset\'s size)')
     m = g[..., 3] > 127
     pairs.append((lin(g[..., :3])[m], lin(o[..., :3])[m]))
 G = np.concatenate([p[0] for p in pairs])

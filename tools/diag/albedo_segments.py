@@ -8,34 +8,16 @@ usage: albedo_segments.py DATA RUN/eval [VIEWS]
 Throw-away diagnostics (numpy, PIL) for the shared scenes (flat-coloured materials); not part
 of the build or tests. Session 53: spheres 19.93 → 25.25 dB, cornell 15.64 → 19.97 dB."""
 import sys, numpy as np
-from PIL import Image
-
-def lin(x):
-    x = x / 255.0
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-def load(p):
-    return np.asarray(Image.open(p).convert('RGBA')).astype(np.float64)
+from diag_common import args, lin, load
 
 def psnr(a, b):
     return -10 * np.log10(((np.clip(a, 0, 1) - b) ** 2).mean())
 
-if len(sys.argv) not in (3, 4):
-    sys.exit('usage: albedo_segments.py DATA RUN/eval [VIEWS]')
-data, ev = sys.argv[1], sys.argv[2]
-try:
-    views = int(sys.argv[3]) if len(sys.argv) > 3 else 16
-except ValueError:
-    sys.exit(f'VIEWS: {sys.argv[3]!r} is not a number of views')
-if views < 1:
-    sys.exit(f'VIEWS: {views} must be at least 1')
+data, ev, views = args('albedo_segments.py DATA RUN/eval [VIEWS]', 16)
 pairs = []
 for k in range(views):
-    try:
-        g = load(f'{data}/test_{k:03d}/albedo.png')
-        o = load(f'{ev}/test_{k:03d}_albedo.png')
-    except OSError as e:
-        sys.exit(f'{e.filename}: cannot read ({e.strerror or e}); run `radiogs eval` first, or give fewer VIEWS')
+    g = load(f'{data}/test_{k:03d}/albedo.png')
+    o = load(f'{ev}/test_{k:03d}_albedo.png')
     if g.shape != o.shape:
         sys.exit(f'{ev}/test_{k:03d}_albedo.png: {o.shape[1]}×{o.shape[0]}, the GT is {g.shape[1]}×{g.shape[0]} '
                  '(evaluate at the dataset\'s size)')

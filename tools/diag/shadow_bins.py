@@ -10,27 +10,9 @@ Throw-away diagnostics (numpy, PIL) for the shared spheres scene; not part of th
 Session 53, true geometry (`oracle_normals SNAP=0.5`): 1.55 in the deepest shadow with the env
 box-filtered to 8 × 16 (the default), 1.08 at full resolution."""
 import sys, numpy as np
-from PIL import Image
+from diag_common import args, lin, load
 
-def lin(x):
-    x = x / 255.0
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-def load(p, mode):
-    try:
-        return np.asarray(Image.open(p).convert(mode)).astype(float)
-    except OSError as e:
-        sys.exit(f'{p}: cannot read ({e.strerror or e})')
-
-if len(sys.argv) not in (3, 4):
-    sys.exit('usage: shadow_bins.py DATA DUMP_DIR [VIEWS]')
-data, dump = sys.argv[1], sys.argv[2]
-try:
-    views = int(sys.argv[3]) if len(sys.argv) > 3 else 8
-except ValueError:
-    sys.exit(f'VIEWS: {sys.argv[3]!r} is not a number of views')
-if views < 1:
-    sys.exit(f'VIEWS: {views} must be at least 1')
+data, dump, views = args('shadow_bins.py DATA DUMP_DIR [VIEWS]', 8)
 gt_direct, ours_direct = [], []
 for k in range(views):
     pic = load(f'{dump}/test_{k:03d}_direct.png', 'RGB')

@@ -2,12 +2,13 @@
 //!
 //! Why: the cached incident directions are uniform over the hemisphere and shared by every
 //! view, so a glossy lobe (the shared scenes' spheres have r = 0.05–0.3: a lobe a few degrees
-//! wide) gets almost none of the 16 samples, and neither the reflections of the env nor those
-//! of the neighbouring objects reach the PBR colour; the albedo's dark channels take the
-//! missing light instead (BENCHMARKS.md sessions 29, 40). Here, for each shaded surfel and the
-//! current view ω_o, K directions are drawn from the GGX distribution of visible normals
-//! (Heitz 2018, [`ggx_vndf_sample`]) at the surfel's roughness and traced like the cache's
-//! rays (same origin offset and skip plane, no gradients), and the lobe is the estimate
+//! wide) gets almost none of the S samples (16 when this was written, 64 since session 54),
+//! and neither the reflections of the env nor those of the neighbouring objects reach the PBR
+//! colour; the albedo's dark channels take the missing light instead (BENCHMARKS.md sessions
+//! 29, 40). Here, for each shaded surfel and the current view ω_o, K directions are drawn
+//! from the GGX distribution of visible normals (Heitz 2018, [`ggx_vndf_sample`]) at the
+//! surfel's roughness and traced like the cache's rays (same origin offset and skip plane, no
+//! gradients), and the lobe is the estimate
 //!
 //!     L_spec = 1/K Σ_k f_s(ω_o, ω_k) · (V_k·L_env(ω_k) + L_ind,k) · max(0, n·ω_k) / pdf(ω_k)
 //!

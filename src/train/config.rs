@@ -247,13 +247,16 @@ pub struct TrainConfig {
     /// Iterations of the inverse stage (`--iters` sets the nvs stage).
     #[arg(long, default_value_t = 2000)]
     pub inverse_iters: u32,
-    /// Incident directions S per surfel in the cache and in the PBR render.
-    #[arg(long, default_value_t = 16)]
+    /// Incident directions S per surfel in the cache and in the PBR render [64]. With the env
+    /// read at full resolution, 16 leaves each surfel's estimate blotchy; 64 gains albedo,
+    /// PBR fit and relighting on both shared scenes (BENCHMARKS.md, session 54).
+    #[arg(long, default_value_t = 64)]
     pub pbr_samples: usize,
     /// Incident-cache age limit [100: the published full refresh every 100 iterations]: every
     /// cache_every/4 iterations the rows that would otherwise grow older are re-traced; rows
-    /// the consistency step traced meanwhile are fresh and kept.
-    #[arg(long, default_value_t = 100)]
+    /// the consistency step traced meanwhile are fresh and kept. 200 measured as good as 100
+    /// at S = 64 and halves the re-tracing (BENCHMARKS.md, session 54).
+    #[arg(long, default_value_t = 200)]
     pub cache_every: u32,
     /// Radiometric consistency: surfels per iteration [2048].
     #[arg(long, default_value_t = 512)]
@@ -361,11 +364,11 @@ pub struct TrainConfig {
     pub roughness_init: f32,
     #[arg(long, default_value_t = 1.5)]
     pub env_init: f32,
-    /// The rendering equation's S samples read the env box-filtered to this height (width 2×):
-    /// each sample stands for a patch of the sky of about that size, so a small bright source
-    /// (a sun) lights every surfel a little instead of a few surfels a lot. 0 = point samples
-    /// of the full map (the published lookup; very noisy with CPU sample counts).
-    #[arg(long, default_value_t = 8)]
+    /// The rendering equation's S samples read the env box-filtered to this height (width 2×);
+    /// 0 (default) = the full map, bilinear (the published lookup). A coarse box (8 was the
+    /// default until session 54) quiets a small bright source at low S, but leaks it into the
+    /// directions around it: shadows come out too light (BENCHMARKS.md, sessions 53–54).
+    #[arg(long, default_value_t = 0)]
     pub env_sample_height: usize,
     /// Start the env from this map (.hdr/.exr) instead of a constant: "known light" runs, and
     /// with `--lr-env 0` a light held fixed (diagnostics, ablations).
@@ -476,12 +479,38 @@ impl TrainConfig {
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
     /// `opacity_reset_cap`, `lambda_albedo_chroma`, `clip_saturated`): those older values are for reading a run folder saved before the
     /// setting existed (`eval::load_run_config`), not for a hand-written settings file.
+    ///
+    /// `--resume` without `--config` reads the run's own `RUN/config.toml` in the file's place,
+    /// as a run folder (keys it predates take the values it was trained with), so a resumed run
+    /// keeps its settings when a built-in default has changed since (session 54 changed S and
+    /// the env lookup); flags typed now still win.
     pub fn resolve(cli: &TrainConfig, explicit: &[String]) -> Result<TrainConfig> {
-        let Some(path) = &cli.config else { return Ok(cli.clone()) };
+        let saved = cli.out.join("config.toml");
+        let (path, run_folder) = match &cli.config {
+            Some(path) => (path.clone(), false),
+            None if cli.resume && saved.is_file() => (saved, true),
+            None => return Ok(cli.clone()),
+        };
+        let path = &path;
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         // Parsed whole first, so unknown keys and bad values are reported with their line.
-        let _: TrainConfig = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
-        let from_file: toml::Table = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
+        let parsed: TrainConfig = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
+        let from_file: toml::Table = if run_folder {
+            match toml::Value::try_from(&parsed) {
+                // `--data` and `--out` are always typed; the file's may be relative to elsewhere.
+                Ok(toml::Value::Table(mut table)) => {
+                    table.remove("data");
+                    table.remove("out");
+                    table
+                }
+                _ => return Err(Error::format(path, "TOML", "cannot be written back as a table")),
+            }
+        } else {
+            toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?
+        };
+        if run_folder {
+            eprintln!("resuming with the settings saved in {} (flags typed now override them)", path.display());
+        }
         // The command line's values (flags typed or their defaults), then the file's keys,
         // then the typed flags again.
         let mut merged = toml::Value::try_from(cli).map_err(|e| Error::invalid("config", e.to_string()))?;
@@ -813,6 +842,38 @@ mod tests {
         assert!(!named.scale_position_lr);
         assert_eq!(named.filter_inv_square, 2.0);
         assert_eq!(named.opacity_reset_cap, 0.01);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// `--resume` continues with the run's saved settings (keys the file predates at their
+    /// older values), flags typed now win, and a fresh run or a run without a saved file gets
+    /// the built-in defaults.
+    #[test]
+    fn resume_keeps_the_runs_saved_settings() {
+        let dir = std::env::temp_dir().join(format!("radiogs-cfg-resume-{}", std::process::id()));
+        let run = dir.join("run");
+        std::fs::create_dir_all(&run).unwrap();
+        let saved = "out = \"elsewhere\"\npbr_samples = 16\nenv_sample_height = 8\ncache_every = 100\niters = 3000\n";
+        std::fs::write(run.join("config.toml"), saved).unwrap();
+        let d = TrainConfig::default();
+        assert_ne!((d.pbr_samples, d.env_sample_height, d.cache_every), (16, 8, 100));
+        let cli = TrainConfig { out: run.clone(), resume: true, ..d.clone() };
+        let r = TrainConfig::resolve(&cli, &[]).unwrap();
+        assert_eq!((r.pbr_samples, r.env_sample_height, r.cache_every, r.iters), (16, 8, 100, 3000));
+        assert_eq!(r.out, run, "the run folder typed, not the file's");
+        assert!(r.resume && r.config.is_none());
+        assert_eq!(r.filter_inv_square, crate::raster::filter_inv_square_2dgs(), "a key the file predates");
+        let typed = TrainConfig { pbr_samples: 32, ..cli.clone() };
+        let r = TrainConfig::resolve(&typed, &["pbr_samples".to_string()]).unwrap();
+        assert_eq!((r.pbr_samples, r.cache_every), (32, 100));
+        let fresh = TrainConfig { resume: false, ..cli.clone() };
+        assert_eq!(TrainConfig::resolve(&fresh, &[]).unwrap().pbr_samples, d.pbr_samples);
+
+        std::fs::write(run.join("config.toml"), "pbr_samplez = 16\n").unwrap();
+        let err = TrainConfig::resolve(&cli, &[]).unwrap_err().to_string();
+        assert!(err.contains("config.toml") && err.contains("pbr_samplez"), "{err}");
+        std::fs::remove_file(run.join("config.toml")).unwrap();
+        assert_eq!(TrainConfig::resolve(&cli, &[]).unwrap().pbr_samples, d.pbr_samples);
         std::fs::remove_dir_all(&dir).ok();
     }
 }

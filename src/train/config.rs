@@ -247,7 +247,7 @@ pub struct TrainConfig {
     /// Iterations of the inverse stage (`--iters` sets the nvs stage).
     #[arg(long, default_value_t = 2000)]
     pub inverse_iters: u32,
-    /// Incident directions S per surfel in the cache and in the PBR render [64]. With the env
+    /// Incident directions S per surfel in the cache and in the PBR render. With the env
     /// read at full resolution, 16 leaves each surfel's estimate blotchy; 64 gains albedo,
     /// PBR fit and relighting on both shared scenes (BENCHMARKS.md, session 54).
     #[arg(long, default_value_t = 64)]

@@ -509,6 +509,9 @@ impl TrainConfig {
             toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?
         };
         if run_folder {
+            // An edited run file is named with its bad setting (the merged settings are
+            // checked again by `train`).
+            parsed.validate().map_err(|e| Error::invalid(path.display().to_string(), e.to_string()))?;
             eprintln!("resuming with the settings saved in {} (flags typed now override them)", path.display());
         }
         // The command line's values (flags typed or their defaults), then the file's keys,
@@ -869,6 +872,9 @@ mod tests {
         let fresh = TrainConfig { resume: false, ..cli.clone() };
         assert_eq!(TrainConfig::resolve(&fresh, &[]).unwrap().pbr_samples, d.pbr_samples);
 
+        std::fs::write(run.join("config.toml"), "window = 0\n").unwrap();
+        let err = TrainConfig::resolve(&cli, &[]).unwrap_err().to_string();
+        assert!(err.contains("config.toml") && err.contains("window"), "{err}");
         std::fs::write(run.join("config.toml"), "pbr_samplez = 16\n").unwrap();
         let err = TrainConfig::resolve(&cli, &[]).unwrap_err().to_string();
         assert!(err.contains("config.toml") && err.contains("pbr_samplez"), "{err}");

@@ -38,9 +38,10 @@ fn clamp_cos(x: f64x8) -> (f64x8, f64x8) {
     (v, d)
 }
 
-/// What the per-surfel constants of the lobe are (the scalar code recomputes them per sample).
+/// The per-surfel constants of the lobe (the scalar code recomputes them per sample): build
+/// one per surfel and view, then evaluate it on blocks of eight directions.
 #[derive(Clone, Copy)]
-struct Surfel {
+pub struct Lobe {
     n: [f64x8; 3],
     wo: [f64x8; 3],
     nov: f64x8,
@@ -51,12 +52,12 @@ struct Surfel {
     r: f64,
 }
 
-impl Surfel {
+impl Lobe {
     #[inline]
-    fn new(r: f64, n: V3, wo: V3) -> Surfel {
+    pub fn new(r: f64, n: V3, wo: V3) -> Lobe {
         let (nov, dnov) = super::brdf::clamp_cos(super::dot(n, wo));
         let r4 = r * r * r * r;
-        Surfel {
+        Lobe {
             n: n.map(splat),
             wo: wo.map(splat),
             nov: splat(nov),
@@ -66,6 +67,33 @@ impl Surfel {
             r,
         }
     }
+
+    /// F·D·V of eight unit directions ω_i (`brdf::specular` per lane).
+    #[inline]
+    pub fn eval(&self, wi: [f64x8; 3]) -> f64x8 {
+        let t = terms(self, wi);
+        let tt = t.noh * t.noh * (self.a2 - splat(1.0)) + splat(1.0);
+        let d = self.a2 / (splat(PI) * tt * tt);
+        let f = splat(F0) + splat(1.0 - F0) * pow5_x8(splat(1.0) - t.voh);
+        f * d * smith_visibility(t.nol, self.nov, self.a2).0
+    }
+
+    /// The lobe and its gradients for upstream gradients `v_spec` (one per lane; lanes whose
+    /// result is not used should get 0 and any unit direction).
+    #[inline]
+    pub fn eval_with_backward(&self, wi: [f64x8; 3], v_spec: f64x8) -> LobeGrads {
+        lobe_backward(self, wi, v_spec)
+    }
+}
+
+/// [`Lobe::eval_with_backward`]'s result, in lanes (∂/∂ω_i is not needed by the shading and
+/// not returned).
+#[derive(Clone, Copy)]
+pub struct LobeGrads {
+    pub spec: f64x8,
+    pub v_roughness: f64x8,
+    pub v_n: [f64x8; 3],
+    pub v_wo: [f64x8; 3],
 }
 
 /// Half vector and cosines of eight samples (`brdf::terms`).
@@ -83,7 +111,7 @@ struct Terms {
 }
 
 #[inline]
-fn terms(sf: &Surfel, wi: [f64x8; 3]) -> Terms {
+fn terms(sf: &Lobe, wi: [f64x8; 3]) -> Terms {
     let s = [sf.wo[0] + wi[0], sf.wo[1] + wi[1], sf.wo[2] + wi[2]];
     let s_len = dot3(s, s).sqrt();
     let live_mask = s_len.simd_gt(splat(1e-12));
@@ -118,12 +146,7 @@ fn load(wi: &Dirs8) -> [f64x8; 3] {
 
 /// The lobe F·D·V (f0 = 0.04) of eight samples: `brdf::specular` per lane.
 pub fn specular(r: f64, n: V3, wo: V3, wi: &Dirs8) -> [f64; LANES] {
-    let sf = Surfel::new(r, n, wo);
-    let t = terms(&sf, load(wi));
-    let tt = t.noh * t.noh * (sf.a2 - splat(1.0)) + splat(1.0);
-    let d = sf.a2 / (splat(PI) * tt * tt);
-    let f = splat(F0) + splat(1.0 - F0) * pow5_x8(splat(1.0) - t.voh);
-    (f * d * smith_visibility(t.nol, sf.nov, sf.a2).0).to_array()
+    Lobe::new(r, n, wo).eval(load(wi)).to_array()
 }
 
 #[inline]
@@ -151,10 +174,18 @@ pub struct SpecularLanes {
 /// Forward and backward of the lobe for upstream gradients `v_spec` (one per lane; lanes whose
 /// result is not used should get 0 and any unit direction).
 pub fn specular_with_backward(r: f64, n: V3, wo: V3, wi: &Dirs8, v_spec: &[f64; LANES]) -> SpecularLanes {
-    let sf = Surfel::new(r, n, wo);
-    let wi = load(wi);
-    let v_spec = f64x8::from(*v_spec);
-    let t = terms(&sf, wi);
+    let g = Lobe::new(r, n, wo).eval_with_backward(load(wi), f64x8::from(*v_spec));
+    SpecularLanes {
+        spec: g.spec.to_array(),
+        v_roughness: g.v_roughness.to_array(),
+        v_n: g.v_n.map(|x| x.to_array()),
+        v_wo: g.v_wo.map(|x| x.to_array()),
+    }
+}
+
+#[inline]
+fn lobe_backward(sf: &Lobe, wi: [f64x8; 3], v_spec: f64x8) -> LobeGrads {
+    let t = terms(sf, wi);
     let one = splat(1.0);
     let a2 = sf.a2;
     let tt = t.noh * t.noh * (a2 - one) + one;
@@ -190,12 +221,7 @@ pub fn specular_with_backward(r: f64, n: V3, wo: V3, wi: &Dirs8, v_spec: &[f64; 
         let v_s = (v_h[k] + h[k] * -hv) * inv;
         v_wo[k] = t.live.select(v_wo[k] + v_s, v_wo[k]);
     }
-    SpecularLanes {
-        spec: spec.to_array(),
-        v_roughness: v_roughness.to_array(),
-        v_n: v_n.map(|x| x.to_array()),
-        v_wo: v_wo.map(|x| x.to_array()),
-    }
+    LobeGrads { spec, v_roughness, v_n, v_wo }
 }
 
 #[cfg(test)]

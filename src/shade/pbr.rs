@@ -11,16 +11,18 @@
 //! per-surfel cache or the tracer's output): the gradient to n does not move the directions.
 //!
 //! Parallel decomposition: rayon over chunks of surfels; each surfel's S samples run in blocks
-//! of eight (f64, no allocation): the env lookups and sums per sample, the specular lobe of a
-//! block in one `brdf_lanes` call (bitwise the scalar lobe). The backward recomputes the forward terms
-//! (nothing saved) and accumulates the env-texel gradient in one buffer per rayon job, summed
-//! at the end.
+//! of eight f64 lanes (no allocation): the per-sample inputs and env lookups are gathered per
+//! lane (`load_block`), the specular lobe (`brdf_lanes::Lobe`, bitwise the scalar lobe), the
+//! products and the sums run in SIMD, and the lane sums are added in lane order at the end. The
+//! backward recomputes the forward terms (nothing saved) and accumulates the env-texel gradient
+//! in one buffer per rayon job, summed at the end.
 
-use super::brdf_lanes::{self, Dirs8, LANES};
+use super::brdf_lanes::{LANES, Lobe};
 use super::{V3, add, brdf, dot, scale, to32, to64};
-use crate::envmap::{EnvMap, PackedFootprint};
+use crate::envmap::{EnvMap, Footprint, PackedFootprint};
 use crate::error::{Error, Result};
 use rayon::prelude::*;
+use wide::f64x8;
 
 /// SoA inputs: N surfels, S samples each (per-sample arrays are N·S, surfel-major).
 #[derive(Clone, Copy)]
@@ -151,60 +153,128 @@ impl PbrInputs<'_> {
     }
 }
 
-/// One surfel, f64: (direct, indirect).
 /// Chunks per parallel accumulator of the env gradient (a fixed partition, so the sum's order
 /// is fixed).
 const REDUCE_GROUP: usize = 4;
 
+#[inline]
+fn splat(x: f64) -> f64x8 {
+    f64x8::splat(x)
+}
+
+/// Lanes summed in lane order (a fixed order: the result does not depend on the SIMD width).
+#[inline]
+fn lane_sum(x: f64x8) -> f64 {
+    x.to_array().iter().sum()
+}
+
+/// Samples k0..k0 + len of one surfel in lanes. Lanes that do not contribute (past `len`, or
+/// under the horizon: n·ω ≤ 0) have zero weight and radiance and the direction n (harmless in
+/// the lobe), so every sum over lanes is the sum over the live samples.
+struct Block {
+    dirs: [f64x8; 3],
+    /// Sample weight (0 on dead lanes).
+    w: f64x8,
+    /// w · n·ω (0 on dead lanes).
+    wc: f64x8,
+    /// Visibility, env radiance (bilinear, f64) and cached indirect radiance of each sample.
+    vis: f64x8,
+    le: [f64x8; 3],
+    li: [f64x8; 3],
+    live: [bool; LANES],
+}
+
+/// Gathers a block: the directions, their cosines, and for the live lanes the env lookup
+/// (its footprint written to `fps` when given, for the backward's scatter).
+#[inline]
+fn load_block(
+    inp: &PbrInputs,
+    env: &EnvMap,
+    footprints: Option<&[PackedFootprint]>,
+    n: V3,
+    k0: usize,
+    len: usize,
+    mut fps: Option<&mut [Footprint; LANES]>,
+) -> Block {
+    let mut d = [[0.0f64; LANES]; 3];
+    let mut w = [0.0f64; LANES];
+    let mut vis = [0.0f64; LANES];
+    let mut le = [[0.0f64; LANES]; 3];
+    let mut li = [[0.0f64; LANES]; 3];
+    let mut live = [false; LANES];
+    for j in 0..LANES {
+        let dk = if j < len { inp.dirs[k0 + j] } else { [0.0; 3] };
+        let c = n[0] * dk[0] as f64 + n[1] * dk[1] as f64 + n[2] * dk[2] as f64;
+        if j >= len || c <= 0.0 {
+            for a in 0..3 {
+                d[a][j] = n[a];
+            }
+            continue;
+        }
+        let k = k0 + j;
+        live[j] = true;
+        for a in 0..3 {
+            d[a][j] = dk[a] as f64;
+        }
+        w[j] = inp.w(k);
+        vis[j] = inp.visibility[k] as f64;
+        let ind = inp.indirect[k];
+        for ch in 0..3 {
+            li[ch][j] = ind[ch] as f64;
+        }
+        // One footprint for the lookup and its backward (the atan2/acos are the costly part,
+        // skipped when the directions' footprints are cached).
+        let fp = match footprints {
+            Some(f) => env.unpack(f[k]),
+            None => env.footprint(dk),
+        };
+        // Bilinear in f32 as `EnvMap::lookup` (the texels are f32; 12 conversions to f64
+        // per sample cost more than the sums).
+        let mut e = [0.0f32; 3];
+        for q in 0..4 {
+            let t = env.texels[fp.index[q]];
+            for ch in 0..3 {
+                e[ch] += fp.weight[q] * t[ch];
+            }
+        }
+        for ch in 0..3 {
+            le[ch][j] = e[ch] as f64;
+        }
+        if let Some(f) = fps.as_deref_mut() {
+            f[j] = fp;
+        }
+    }
+    let dirs = d.map(f64x8::from);
+    let w = f64x8::from(w);
+    let cos = dirs[0] * splat(n[0]) + dirs[1] * splat(n[1]) + dirs[2] * splat(n[2]);
+    Block { dirs, w, wc: w * cos, vis: f64x8::from(vis), le: le.map(f64x8::from), li: li.map(f64x8::from), live }
+}
+
+/// One surfel, f64: (direct, indirect). Samples run in blocks of eight lanes (f64x8): the
+/// gathers per lane, the lobe and the sums in SIMD.
 pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
-    let (mut direct, mut indirect) = ([0.0; 3], [0.0; 3]);
     let footprints = inp.footprints_for(env);
     // The Lambert lobe under the specular layer (brdf.rs): one weight per surfel and view.
     let kd = if inp.lambert { brdf::diffuse_weight(dot(n, wo), r).0 } else { 0.0 };
-    let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI);
-    // Blocks of eight samples: the specular lobe of a block in one lane kernel.
+    let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(splat);
+    let lobe = inp.specular.then(|| Lobe::new(r, n, wo));
+    let (mut direct, mut indirect) = ([f64x8::ZERO; 3], [f64x8::ZERO; 3]);
     for k0 in (i * s..(i + 1) * s).step_by(LANES) {
         let len = (i * s + s - k0).min(LANES);
-        let spec8 =
-            if inp.specular { brdf_lanes::specular(r, n, wo, &block_dirs(inp, k0, len, n)) } else { [0.0; LANES] };
-        for (j, &spec) in spec8.iter().enumerate().take(len) {
-            let k = k0 + j;
-            let d = to64(inp.dirs[k]);
-            let c = dot(n, d);
-            if c <= 0.0 {
-                continue;
-            }
-            let f: V3 = std::array::from_fn(|ch| lambert[ch] + spec);
-            let le = to64(match footprints {
-                Some(f) => env.lookup_packed(f[k]),
-                None => env.lookup(inp.dirs[k]),
-            });
-            let v = inp.visibility[k] as f64;
-            let li = to64(inp.indirect[k]);
-            let wc = inp.w(k) * c;
-            for ch in 0..3 {
-                direct[ch] += wc * f[ch] * v * le[ch];
-                indirect[ch] += wc * f[ch] * li[ch];
-            }
+        let b = load_block(inp, env, footprints, n, k0, len, None);
+        let spec = match &lobe {
+            Some(l) => l.eval(b.dirs),
+            None => f64x8::ZERO,
+        };
+        for ch in 0..3 {
+            let fw = b.wc * (lambert[ch] + spec);
+            direct[ch] += fw * b.vis * b.le[ch];
+            indirect[ch] += fw * b.li[ch];
         }
     }
-    (direct, indirect)
-}
-
-/// The directions of samples k0..k0 + len as lanes; lanes past `len` get `fill` (a harmless
-/// direction whose result is not used).
-#[inline]
-fn block_dirs(inp: &PbrInputs, k0: usize, len: usize, fill: V3) -> Dirs8 {
-    let mut dirs = [[0.0; LANES]; 3];
-    for j in 0..LANES {
-        let d = if j < len { to64(inp.dirs[k0 + j]) } else { fill };
-        for c in 0..3 {
-            dirs[c][j] = d[c];
-        }
-    }
-    dirs
+    (direct.map(lane_sum), indirect.map(lane_sum))
 }
 
 /// Forward: writes L_direct and L_indirect per surfel (L_pbr = their sum).
@@ -221,8 +291,8 @@ pub fn shade_surfels(inp: &PbrInputs, env: &EnvMap, direct: &mut [[f32; 3]], ind
     Ok(())
 }
 
-/// Per-surfel gradients of one surfel; writes the per-sample ones into the slices given and
-/// adds the env gradient into `v_env`.
+/// Per-surfel gradients of one surfel; writes the per-sample ones into `v_vis` and `v_lind`
+/// (unless they are empty) and adds the env gradient into `v_env` (unless it is empty).
 #[allow(clippy::too_many_arguments)]
 fn backward_one(
     inp: &PbrInputs,
@@ -237,97 +307,72 @@ fn backward_one(
 ) -> (V3, f64, V3, V3) {
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
-    let (mut vr, mut vn, mut vwo) = (0.0, [0.0; 3], [0.0; 3]);
     let footprints = inp.footprints_for(env);
     let (kd, dkd_dnov, dkd_dr) = if inp.lambert { brdf::diffuse_weight(dot(n, wo), r) } else { (0.0, 0.0, 0.0) };
-    let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI);
-    // Σ_s v_f over the samples: the Lambert lobe's gradient, chained once per surfel below.
-    let mut v_lambert = [0.0; 3];
+    let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(splat);
+    let lobe = inp.specular.then(|| Lobe::new(r, n, wo));
+    let (v_dir8, v_ind8) = (v_dir.map(splat), v_ind.map(splat));
+    let (incident, env_grad) = (!v_vis.is_empty(), !detach.env && !v_env.is_empty());
+    // Lane accumulators; Σ_s v_f (the Lambert lobe's gradient) is chained once per surfel below.
+    let (mut vr, mut vn, mut vwo, mut v_lambert) = (f64x8::ZERO, [f64x8::ZERO; 3], [f64x8::ZERO; 3], [f64x8::ZERO; 3]);
+    let mut fps = [Footprint { index: [0; 4], weight: [0.0; 4] }; LANES];
     for k0 in (i * s..(i + 1) * s).step_by(LANES) {
         let len = (i * s + s - k0).min(LANES);
-        // Per lane: everything the lobe's upstream gradient needs (v_f = wc·g does not depend
-        // on f), then the lobe and its backward for the block, then the sums in sample order.
-        let mut live = [false; LANES];
-        let mut fps = [crate::envmap::Footprint { index: [0; 4], weight: [0.0; 4] }; LANES];
-        let mut les = [[0.0f64; 3]; LANES];
-        let mut gs = [[0.0f64; 3]; LANES];
-        let mut v_spec = [0.0f64; LANES];
-        for j in 0..len {
-            let k = k0 + j;
-            let jj = k - i * s;
-            let d = to64(inp.dirs[k]);
-            let c = dot(n, d);
-            if c <= 0.0 {
-                v_vis[jj] = 0.0;
-                v_lind[jj] = [0.0; 3];
-                continue;
-            }
-            live[j] = true;
-            // One footprint for the lookup and its backward (the atan2/acos are the costly part).
-            let fp = match footprints {
-                Some(f) => env.unpack(f[k]),
-                None => env.footprint(inp.dirs[k]),
-            };
-            let mut le = [0.0f64; 3];
-            for q in 0..4 {
-                let t = env.texels[fp.index[q]];
-                for ch in 0..3 {
-                    le[ch] += fp.weight[q] as f64 * t[ch] as f64;
+        let b = load_block(inp, env, footprints, n, k0, len, Some(&mut fps));
+        // g = V·Le ⊙ v_dir + L_ind ⊙ v_ind per channel (the incident side seen by v); the
+        // lobe's upstream gradient v_f = wc·g does not depend on f.
+        let g: [f64x8; 3] = std::array::from_fn(|ch| v_dir8[ch] * b.vis * b.le[ch] + v_ind8[ch] * b.li[ch]);
+        let v_f: [f64x8; 3] = std::array::from_fn(|ch| g[ch] * b.wc);
+        let spec = match &lobe {
+            Some(l) => {
+                let lg = l.eval_with_backward(b.dirs, v_f[0] + v_f[1] + v_f[2]);
+                vr += lg.v_roughness;
+                for c in 0..3 {
+                    vn[c] += lg.v_n[c];
+                    vwo[c] += lg.v_wo[c];
                 }
+                lg.spec
             }
-            let v = inp.visibility[k] as f64;
-            let li = to64(inp.indirect[k]);
-            // L_s = V·Le ⊙ v_dir + L_ind ⊙ v_ind (per channel, the incident side seen by v).
-            let g: V3 = std::array::from_fn(|ch| v_dir[ch] * v * le[ch] + v_ind[ch] * li[ch]);
-            let v_f = scale(g, inp.w(k) * c);
-            v_spec[j] = v_f[0] + v_f[1] + v_f[2];
-            (fps[j], les[j], gs[j]) = (fp, le, g);
-        }
-        let lobe = if inp.specular {
-            Some(brdf_lanes::specular_with_backward(r, n, wo, &block_dirs(inp, k0, len, n), &v_spec))
-        } else {
-            None
+            None => f64x8::ZERO,
         };
-        for j in 0..len {
-            if !live[j] {
-                continue;
+        let f: [f64x8; 3] = std::array::from_fn(|ch| lambert[ch] + spec);
+        for ch in 0..3 {
+            v_lambert[ch] += v_f[ch];
+        }
+        let v_c = b.w * (f[0] * g[0] + f[1] * g[1] + f[2] * g[2]);
+        for c in 0..3 {
+            vn[c] += b.dirs[c] * v_c;
+        }
+        // The incident side (dead lanes have wc = 0, hence zero gradients).
+        let wf: [f64x8; 3] = std::array::from_fn(|ch| b.wc * f[ch]);
+        if incident {
+            let vv =
+                (wf[0] * b.le[0] * v_dir8[0] + wf[1] * b.le[1] * v_dir8[1] + wf[2] * b.le[2] * v_dir8[2]).to_array();
+            let vl: [[f64; LANES]; 3] = std::array::from_fn(|ch| (wf[ch] * v_ind8[ch]).to_array());
+            let base = k0 - i * s;
+            for j in 0..len {
+                v_vis[base + j] = vv[j] as f32;
+                v_lind[base + j] = [vl[0][j] as f32, vl[1][j] as f32, vl[2][j] as f32];
             }
-            let k = k0 + j;
-            let jj = k - i * s;
-            let d = to64(inp.dirs[k]);
-            let c = dot(n, d);
-            let (fp, le, g) = (&fps[j], les[j], gs[j]);
-            let v = inp.visibility[k] as f64;
-            let w = inp.w(k);
-            let wc = w * c;
-            let v_f = scale(g, wc);
-            let spec = match &lobe {
-                Some(l) => {
-                    vr += l.v_roughness[j];
-                    vn = add(vn, [l.v_n[0][j], l.v_n[1][j], l.v_n[2][j]]);
-                    vwo = add(vwo, [l.v_wo[0][j], l.v_wo[1][j], l.v_wo[2][j]]);
-                    l.spec[j]
+        }
+        if env_grad {
+            let v_le: [[f64; LANES]; 3] = std::array::from_fn(|ch| (wf[ch] * b.vis * v_dir8[ch]).to_array());
+            for j in 0..len {
+                if !b.live[j] {
+                    continue;
                 }
-                None => 0.0,
-            };
-            let f: V3 = std::array::from_fn(|ch| lambert[ch] + spec);
-            v_lambert = add(v_lambert, v_f);
-            let v_c = w * dot(f, g);
-            vn = add(vn, scale(d, v_c));
-            // Incident side.
-            v_vis[jj] = (wc * (f[0] * le[0] * v_dir[0] + f[1] * le[1] * v_dir[1] + f[2] * le[2] * v_dir[2])) as f32;
-            v_lind[jj] = to32(std::array::from_fn(|ch| wc * f[ch] * v_ind[ch]));
-            if !detach.env {
-                let v_le: [f64; 3] = std::array::from_fn(|ch| wc * f[ch] * v * v_dir[ch]);
+                let fp = &fps[j];
                 for q in 0..4 {
                     let dst = &mut v_env[fp.index[q]];
                     for ch in 0..3 {
-                        dst[ch] += (fp.weight[q] as f64 * v_le[ch]) as f32;
+                        dst[ch] += (fp.weight[q] as f64 * v_le[ch][j]) as f32;
                     }
                 }
             }
         }
     }
+    let v_lambert = v_lambert.map(lane_sum);
+    let (mut vr, mut vn, mut vwo) = (lane_sum(vr), vn.map(lane_sum), vwo.map(lane_sum));
     // lambert = a·kd(NoV, r)/π.
     let mut va = scale(v_lambert, kd * std::f64::consts::FRAC_1_PI);
     let v_kd = dot(v_lambert, a) * std::f64::consts::FRAC_1_PI;
@@ -483,7 +528,6 @@ pub fn shade_subset_backward(
     if v_direct.len() != m || v_indirect.len() != m {
         return Err(Error::invalid("PBR upstream gradients", format!("need {m} entries")));
     }
-    let s = inp.samples;
     grads.v_albedo.resize(m, [0.0; 3]);
     grads.v_roughness.resize(m, 0.0);
     grads.v_normal.resize(m, [0.0; 3]);
@@ -499,8 +543,8 @@ pub fn shade_subset_backward(
         .enumerate()
         .fold_chunks(
             REDUCE_GROUP,
-            || (if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] }, vec![0.0f32; s], vec![[0.0f32; 3]; s]),
-            |(mut acc, mut vvis, mut vind), (c, (((va, vr), vn), vv))| {
+            || if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] },
+            |mut acc, (c, (((va, vr), vn), vv))| {
                 for j in 0..va.len() {
                     let k = c * CHUNK + j;
                     // No upstream gradient (e.g. a surfel the rasteriser did not reach): every
@@ -516,8 +560,9 @@ pub fn shade_subset_backward(
                         to64(v_direct[k]),
                         to64(v_indirect[k]),
                         detach,
-                        &mut vvis,
-                        &mut vind,
+                        // No gradients to the cache: the per-sample ones are not written.
+                        &mut [],
+                        &mut [],
                         &mut acc,
                     );
                     va[j] = to32(ga);
@@ -525,10 +570,9 @@ pub fn shade_subset_backward(
                     vn[j] = to32(gn);
                     vv[j] = to32(gv);
                 }
-                (acc, vvis, vind)
+                acc
             },
         )
-        .map(|(acc, _, _)| acc)
         .collect::<Vec<_>>()
         .into_iter()
         .fold(Vec::new(), |mut a, b| {
@@ -683,6 +727,55 @@ mod tests {
         assert!(sub.v_env.iter().any(|t| t[0] != 0.0));
     }
 
+    /// The lane kernel against a plain per-sample loop over `brdf::eval` and `EnvMap::lookup`,
+    /// for sample counts with full and partial blocks, with and without cached footprints.
+    #[test]
+    fn lanes_match_a_per_sample_loop() {
+        let env = random_env(16, 32, 21);
+        for s in [1, 7, 8, 13, 64] {
+            let case = random_case(6, s, 30 + s as u64);
+            let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
+            for cached in [false, true] {
+                let inp = PbrInputs {
+                    footprints: cached.then_some(CachedFootprints {
+                        data: &packed,
+                        width: env.width,
+                        height: env.height,
+                    }),
+                    ..case.inputs()
+                };
+                for i in 0..6 {
+                    let (direct, indirect) = shade_one(&inp, &env, i);
+                    let (a, r, n, wo) =
+                        (to64(case.albedo[i]), case.rough[i] as f64, to64(case.normal[i]), to64(case.view[i]));
+                    let (mut want_d, mut want_i) = ([0.0f64; 3], [0.0f64; 3]);
+                    for k in i * s..(i + 1) * s {
+                        let wi = to64(case.dirs[k]);
+                        let c = dot(n, wi);
+                        if c <= 0.0 {
+                            continue;
+                        }
+                        let f = brdf::eval(a, r, n, wo, wi);
+                        let le = to64(env.lookup(case.dirs[k]));
+                        let w = case.weight as f64 * c;
+                        for ch in 0..3 {
+                            want_d[ch] += w * f[ch] * case.vis[k] as f64 * le[ch];
+                            want_i[ch] += w * f[ch] * case.ind[k][ch] as f64;
+                        }
+                    }
+                    for ch in 0..3 {
+                        assert!(
+                            close(direct[ch], want_d[ch], 1e-12, 1e-15),
+                            "S {s} surfel {i}: {direct:?} vs {want_d:?}"
+                        );
+                        assert!(close(indirect[ch], want_i[ch], 1e-12, 1e-15), "S {s} surfel {i}: {indirect:?}");
+                    }
+                    assert!(want_d.iter().all(|x| *x > 0.0) || s == 1);
+                }
+            }
+        }
+    }
+
     #[test]
     fn furnace_lambert_part() {
         // L_pbr is affine in the albedo: L(a = 1) − L(a = 0) is the white-Lambert term.
@@ -747,14 +840,20 @@ mod tests {
     /// no Lambert term, so no albedo gradient.
     #[test]
     fn backward_of_the_weighted_specular_lobe_alone_matches_finite_differences() {
-        check_backward_with(true, false, true);
+        check_backward_with(true, false, true, 16);
     }
 
     fn check_backward(specular: bool) {
-        check_backward_with(specular, true, false)
+        check_backward_with(specular, true, false, 16)
     }
 
-    fn check_backward_with(specular: bool, lambert: bool, weighted: bool) {
+    /// A sample count that leaves a partial block of lanes (13 = 8 + 5).
+    #[test]
+    fn backward_with_a_partial_block_matches_finite_differences() {
+        check_backward_with(true, true, false, 13)
+    }
+
+    fn check_backward_with(specular: bool, lambert: bool, weighted: bool, samples: usize) {
         let random_case = |n, s, seed| {
             let c = random_case(n, s, seed);
             let mut rg = rng(seed ^ 0x5eed);
@@ -762,7 +861,7 @@ mod tests {
             Case { specular, lambert, sample_weights, ..c }
         };
         let env = random_env(16, 32, 2);
-        let case = random_case(5, 16, 3);
+        let case = random_case(5, samples, 3);
         let n = case.albedo.len();
         let mut rg = rng(4);
         let v_dir: Vec<[f32; 3]> = (0..n).map(|_| [rg.random_range(-1.0..1.0), rg.random(), rg.random()]).collect();
@@ -777,7 +876,7 @@ mod tests {
         // (Steps of 1e-3 left 1.3 % of truncation error in the specular lobe's normal
         // gradient, which the Lambert term's larger gradient had hidden.)
         let central = |mutate: &dyn Fn(&mut Case, f32), i: usize, eps: f32| {
-            let (mut p, mut m) = (random_case(5, 16, 3), random_case(5, 16, 3));
+            let (mut p, mut m) = (random_case(5, samples, 3), random_case(5, samples, 3));
             mutate(&mut p, eps);
             mutate(&mut m, -eps);
             (obj(&p, &env, i) - obj(&m, &env, i)) / (2.0 * eps as f64)
@@ -993,38 +1092,47 @@ mod tests {
         let env = random_env(64, 128, 11);
         let (n, s) = (50_000, 64);
         let case = random_case(n, s, 12);
-        let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
-        let mut g = PbrGrads::new(n, s, env.texels.len());
-        let v = vec![[1.0f32; 3]; n];
-        shade_surfels(&case.inputs(), &env, &mut d, &mut ind).unwrap();
-        let reps = 5;
-        let t0 = std::time::Instant::now();
-        for _ in 0..reps {
-            shade_surfels(&case.inputs(), &env, &mut d, &mut ind).unwrap();
+        // The training path: footprints of the cached directions made once per cache refresh.
+        let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
+        for cached in [false, true] {
+            let inputs = PbrInputs {
+                footprints: cached.then_some(CachedFootprints { data: &packed, width: env.width, height: env.height }),
+                ..case.inputs()
+            };
+            let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
+            let mut g = PbrGrads::new(n, s, env.texels.len());
+            let v = vec![[1.0f32; 3]; n];
+            shade_surfels(&inputs, &env, &mut d, &mut ind).unwrap();
+            let reps = 5;
+            let t0 = std::time::Instant::now();
+            for _ in 0..reps {
+                shade_surfels(&inputs, &env, &mut d, &mut ind).unwrap();
+            }
+            let tf = t0.elapsed().as_secs_f64() / reps as f64;
+            let t0 = std::time::Instant::now();
+            for _ in 0..reps {
+                shade_surfels_backward(&inputs, &env, &v, &v, Detach::default(), &mut g).unwrap();
+            }
+            let tb = t0.elapsed().as_secs_f64() / reps as f64;
+            let ns = (n * s) as f64;
+            let cpu1 = cpu_seconds();
+            shade_surfels(&inputs, &env, &mut d, &mut ind).unwrap();
+            shade_surfels_backward(&inputs, &env, &v, &v, Detach::default(), &mut g).unwrap();
+            let cpu = cpu_seconds() - cpu1;
+            let what = if cached { "cached footprints" } else { "directions mapped per lookup" };
+            println!(
+                "pbr ({what}) CPU time (all threads) for one forward+backward: {:.1} ms = {:.3} µs per surfel-sample",
+                cpu * 1e3,
+                cpu / ns * 1e6
+            );
+            println!(
+                "pbr ({what}) {n} surfels x {s} samples, {} threads: forward {:.1} ms, backward {:.1} ms, forward+backward {:.1} ms = {:.2} M surfel-samples/s",
+                rayon::current_num_threads(),
+                tf * 1e3,
+                tb * 1e3,
+                (tf + tb) * 1e3,
+                ns / (tf + tb) / 1e6
+            );
         }
-        let tf = t0.elapsed().as_secs_f64() / reps as f64;
-        let t0 = std::time::Instant::now();
-        for _ in 0..reps {
-            shade_surfels_backward(&case.inputs(), &env, &v, &v, Detach::default(), &mut g).unwrap();
-        }
-        let tb = t0.elapsed().as_secs_f64() / reps as f64;
-        let ns = (n * s) as f64;
-        let cpu1 = cpu_seconds();
-        shade_surfels(&case.inputs(), &env, &mut d, &mut ind).unwrap();
-        shade_surfels_backward(&case.inputs(), &env, &v, &v, Detach::default(), &mut g).unwrap();
-        let cpu = cpu_seconds() - cpu1;
-        println!(
-            "pbr CPU time (all threads) for one forward+backward: {:.1} ms = {:.3} µs per surfel-sample",
-            cpu * 1e3,
-            cpu / ns * 1e6
-        );
-        println!(
-            "pbr {n} surfels x {s} samples, {} threads: forward {:.1} ms, backward {:.1} ms, forward+backward {:.1} ms = {:.2} M surfel-samples/s",
-            rayon::current_num_threads(),
-            tf * 1e3,
-            tb * 1e3,
-            (tf + tb) * 1e3,
-            ns / (tf + tb) / 1e6
-        );
     }
 }

@@ -22,7 +22,7 @@ use super::{V3, add, brdf, dot, scale, to32, to64};
 use crate::envmap::{EnvMap, Footprint, PackedFootprint};
 use crate::error::{Error, Result};
 use rayon::prelude::*;
-use wide::f64x8;
+use wide::{f32x4, f64x8};
 
 /// SoA inputs: N surfels, S samples each (per-sample arrays are N·S, surfel-major).
 #[derive(Clone, Copy)]
@@ -162,6 +162,19 @@ fn splat(x: f64) -> f64x8 {
     f64x8::splat(x)
 }
 
+/// The env as the lane kernel reads it: the map (for footprints) and its texels padded to four
+/// floats, so that a bilinear lookup is four SIMD loads and products, not twelve scalar ones.
+pub struct LaneEnv<'a> {
+    pub env: &'a EnvMap,
+    texels: Vec<f32x4>,
+}
+
+impl<'a> LaneEnv<'a> {
+    pub fn new(env: &'a EnvMap) -> LaneEnv<'a> {
+        LaneEnv { env, texels: env.texels.iter().map(|t| f32x4::from([t[0], t[1], t[2], 0.0])).collect() }
+    }
+}
+
 /// Lanes summed in lane order (a fixed order: the result does not depend on the SIMD width).
 #[inline]
 fn lane_sum(x: f64x8) -> f64 {
@@ -189,7 +202,7 @@ struct Block {
 #[inline]
 fn load_block(
     inp: &PbrInputs,
-    env: &EnvMap,
+    env: &LaneEnv,
     footprints: Option<&[PackedFootprint]>,
     n: V3,
     k0: usize,
@@ -225,18 +238,15 @@ fn load_block(
         // One footprint for the lookup and its backward (the atan2/acos are the costly part,
         // skipped when the directions' footprints are cached).
         let fp = match footprints {
-            Some(f) => env.unpack(f[k]),
-            None => env.footprint(dk),
+            Some(f) => env.env.unpack(f[k]),
+            None => env.env.footprint(dk),
         };
-        // Bilinear in f32 as `EnvMap::lookup` (the texels are f32; 12 conversions to f64
-        // per sample cost more than the sums).
-        let mut e = [0.0f32; 3];
-        for q in 0..4 {
-            let t = env.texels[fp.index[q]];
-            for ch in 0..3 {
-                e[ch] += fp.weight[q] * t[ch];
-            }
+        // Bilinear in f32, the same sums in the same order as `EnvMap::lookup`.
+        let mut e4 = env.texels[fp.index[0]] * f32x4::splat(fp.weight[0]);
+        for q in 1..4 {
+            e4 += env.texels[fp.index[q]] * f32x4::splat(fp.weight[q]);
         }
+        let e = e4.to_array();
         for ch in 0..3 {
             le[ch][j] = e[ch] as f64;
         }
@@ -252,10 +262,10 @@ fn load_block(
 
 /// One surfel, f64: (direct, indirect). Samples run in blocks of eight lanes (f64x8): the
 /// gathers per lane, the lobe and the sums in SIMD.
-pub fn shade_one(inp: &PbrInputs, env: &EnvMap, i: usize) -> (V3, V3) {
+pub fn shade_one(inp: &PbrInputs, env: &LaneEnv, i: usize) -> (V3, V3) {
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
-    let footprints = inp.footprints_for(env);
+    let footprints = inp.footprints_for(env.env);
     // The Lambert lobe under the specular layer (brdf.rs): one weight per surfel and view.
     let kd = if inp.lambert { brdf::diffuse_weight(dot(n, wo), r).0 } else { 0.0 };
     let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(splat);
@@ -283,6 +293,7 @@ pub fn shade_surfels(inp: &PbrInputs, env: &EnvMap, direct: &mut [[f32; 3]], ind
     if direct.len() != inp.len() || indirect.len() != inp.len() {
         return Err(Error::invalid("PBR outputs", format!("need {} surfels", inp.len())));
     }
+    let env = &LaneEnv::new(env);
     direct.par_iter_mut().zip(indirect.par_iter_mut()).enumerate().with_min_len(64).for_each(|(i, (d, ind))| {
         let (a, b) = shade_one(inp, env, i);
         *d = to32(a);
@@ -296,18 +307,18 @@ pub fn shade_surfels(inp: &PbrInputs, env: &EnvMap, direct: &mut [[f32; 3]], ind
 #[allow(clippy::too_many_arguments)]
 fn backward_one(
     inp: &PbrInputs,
-    env: &EnvMap,
+    env: &LaneEnv,
     i: usize,
     v_dir: V3,
     v_ind: V3,
     detach: Detach,
     v_vis: &mut [f32],
     v_lind: &mut [[f32; 3]],
-    v_env: &mut [[f32; 3]],
+    v_env: &mut [f32x4],
 ) -> (V3, f64, V3, V3) {
     let s = inp.samples;
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
-    let footprints = inp.footprints_for(env);
+    let footprints = inp.footprints_for(env.env);
     let (kd, dkd_dnov, dkd_dr) = if inp.lambert { brdf::diffuse_weight(dot(n, wo), r) } else { (0.0, 0.0, 0.0) };
     let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(splat);
     let lobe = inp.specular.then(|| Lobe::new(r, n, wo));
@@ -362,11 +373,9 @@ fn backward_one(
                     continue;
                 }
                 let fp = &fps[j];
+                let v = f32x4::from([v_le[0][j] as f32, v_le[1][j] as f32, v_le[2][j] as f32, 0.0]);
                 for q in 0..4 {
-                    let dst = &mut v_env[fp.index[q]];
-                    for ch in 0..3 {
-                        dst[ch] += (fp.weight[q] as f64 * v_le[ch][j]) as f32;
-                    }
+                    v_env[fp.index[q]] += v * f32x4::splat(fp.weight[q]);
                 }
             }
         }
@@ -421,6 +430,7 @@ pub fn shade_surfels_backward(
     }
     const CHUNK: usize = 64;
     let texels = env.texels.len();
+    let lane_env = &LaneEnv::new(env);
     let v_env = grads
         .v_albedo
         .par_chunks_mut(CHUNK)
@@ -434,13 +444,13 @@ pub fn shade_surfels_backward(
         // rayon schedules the work (a plain fold + reduce made resumed runs differ).
         .fold_chunks(
             REDUCE_GROUP,
-            || if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] },
+            || if detach.env { Vec::new() } else { vec![f32x4::ZERO; texels] },
             |mut acc, (c, (((((va, vr), vn), vv), vvis), vind))| {
                 for j in 0..va.len() {
                     let i = c * CHUNK + j;
                     let (ga, gr, gn, gv) = backward_one(
                         inp,
-                        env,
+                        lane_env,
                         i,
                         to64(v_direct[i]),
                         to64(v_indirect[i]),
@@ -464,16 +474,17 @@ pub fn shade_surfels_backward(
                 return b;
             }
             for (x, y) in a.iter_mut().zip(&b) {
-                for ch in 0..3 {
-                    x[ch] += y[ch];
-                }
+                *x += *y;
             }
             a
         });
     if v_env.is_empty() {
         grads.v_env.iter_mut().for_each(|x| *x = [0.0; 3]);
     } else {
-        grads.v_env.copy_from_slice(&v_env);
+        for (dst, t) in grads.v_env.iter_mut().zip(&v_env) {
+            let t = t.to_array();
+            *dst = [t[0], t[1], t[2]];
+        }
     }
     Ok(())
 }
@@ -491,6 +502,7 @@ pub fn shade_subset(
     if direct.len() != ids.len() || indirect.len() != ids.len() {
         return Err(Error::invalid("PBR outputs", format!("need {} entries", ids.len())));
     }
+    let env = &LaneEnv::new(env);
     direct.par_iter_mut().zip(indirect.par_iter_mut()).zip(ids.par_iter()).with_min_len(64).for_each(
         |((d, ind), &i)| {
             let (a, b) = shade_one(inp, env, i as usize);
@@ -533,6 +545,7 @@ pub fn shade_subset_backward(
     grads.v_normal.resize(m, [0.0; 3]);
     grads.v_view.resize(m, [0.0; 3]);
     let texels = env.texels.len();
+    let lane_env = &LaneEnv::new(env);
     const CHUNK: usize = 64;
     let v_env = grads
         .v_albedo
@@ -543,7 +556,7 @@ pub fn shade_subset_backward(
         .enumerate()
         .fold_chunks(
             REDUCE_GROUP,
-            || if detach.env { Vec::new() } else { vec![[0.0f32; 3]; texels] },
+            || if detach.env { Vec::new() } else { vec![f32x4::ZERO; texels] },
             |mut acc, (c, (((va, vr), vn), vv))| {
                 for j in 0..va.len() {
                     let k = c * CHUNK + j;
@@ -555,7 +568,7 @@ pub fn shade_subset_backward(
                     }
                     let (ga, gr, gn, gv) = backward_one(
                         inp,
-                        env,
+                        lane_env,
                         ids[k] as usize,
                         to64(v_direct[k]),
                         to64(v_indirect[k]),
@@ -580,16 +593,15 @@ pub fn shade_subset_backward(
                 return b;
             }
             for (x, y) in a.iter_mut().zip(&b) {
-                for ch in 0..3 {
-                    x[ch] += y[ch];
-                }
+                *x += *y;
             }
             a
         });
     grads.v_env.clear();
     grads.v_env.resize(texels, [0.0; 3]);
-    if !v_env.is_empty() {
-        grads.v_env.copy_from_slice(&v_env);
+    for (dst, t) in grads.v_env.iter_mut().zip(&v_env) {
+        let t = t.to_array();
+        *dst = [t[0], t[1], t[2]];
     }
     Ok(())
 }
@@ -745,7 +757,7 @@ mod tests {
                     ..case.inputs()
                 };
                 for i in 0..6 {
-                    let (direct, indirect) = shade_one(&inp, &env, i);
+                    let (direct, indirect) = shade_one(&inp, &LaneEnv::new(&env), i);
                     let (a, r, n, wo) =
                         (to64(case.albedo[i]), case.rough[i] as f64, to64(case.normal[i]), to64(case.view[i]));
                     let (mut want_d, mut want_i) = ([0.0f64; 3], [0.0f64; 3]);
@@ -869,7 +881,7 @@ mod tests {
         let mut g = PbrGrads::new(n, case.s, env.texels.len());
         shade_surfels_backward(&case.inputs(), &env, &v_dir, &v_ind, Detach::default(), &mut g).unwrap();
         let obj = |c: &Case, e: &EnvMap, i: usize| {
-            let (d, ind) = shade_one(&c.inputs(), e, i);
+            let (d, ind) = shade_one(&c.inputs(), &LaneEnv::new(e), i);
             dot(d, to64(v_dir[i])) + dot(ind, to64(v_ind[i]))
         };
         // Inputs are f32 (steps can't be tiny); Richardson-extrapolated central differences.
@@ -941,7 +953,7 @@ mod tests {
         let mut g = PbrGrads::new(4, 8, env.texels.len());
         shade_surfels_backward(&case.inputs(), &env, &v, &v, Detach::default(), &mut g).unwrap();
         let obj = |c: &Case, i: usize| {
-            let (d, ind) = shade_one(&c.inputs(), &env, i);
+            let (d, ind) = shade_one(&c.inputs(), &LaneEnv::new(&env), i);
             dot(add(d, ind), to64(v[i]))
         };
         for i in 0..4 {

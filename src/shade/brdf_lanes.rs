@@ -1,6 +1,7 @@
 //! The specular lobe of [`super::brdf`] for eight samples of one surfel at once (f64x8), forward
-//! and backward side by side: the per-sample rendering equation spends most of its time here
-//! (three square roots and four divisions a sample), and a surfel's samples share n, ω_o and r.
+//! and backward side by side: most of the per-sample rendering equation's arithmetic is here
+//! (three square roots and four divisions a sample), and a surfel's samples share n, ω_o and r
+//! ([`Lobe`] holds what they share; `pbr.rs` calls it on blocks of eight samples).
 //!
 //! Every expression mirrors the scalar code in `brdf.rs` operation for operation (no fused
 //! multiply–adds), so each lane is bitwise the scalar result; `brdf.rs` stays the reference and
@@ -144,7 +145,8 @@ fn load(wi: &Dirs8) -> [f64x8; 3] {
     [f64x8::from(wi[0]), f64x8::from(wi[1]), f64x8::from(wi[2])]
 }
 
-/// The lobe F·D·V (f0 = 0.04) of eight samples: `brdf::specular` per lane.
+/// The lobe F·D·V (f0 = 0.04) of eight samples: `brdf::specular` per lane (the array form of
+/// [`Lobe::eval`], which the tests compare with the scalar lobe bit for bit).
 pub fn specular(r: f64, n: V3, wo: V3, wi: &Dirs8) -> [f64; LANES] {
     Lobe::new(r, n, wo).eval(load(wi)).to_array()
 }

@@ -398,6 +398,25 @@ fn backward_one(
     (va, vr, vn, vwo)
 }
 
+/// Sums the env-gradient accumulators of the rayon groups in group order (a fixed order: the
+/// result does not depend on scheduling) into `out`; all zero when there are none (detached).
+fn store_env_gradient(groups: Vec<Vec<f32x4>>, out: &mut [[f32; 3]]) {
+    let mut groups = groups.into_iter().filter(|g| !g.is_empty());
+    let Some(mut sum) = groups.next() else {
+        out.iter_mut().for_each(|x| *x = [0.0; 3]);
+        return;
+    };
+    for g in groups {
+        for (x, y) in sum.iter_mut().zip(&g) {
+            *x += *y;
+        }
+    }
+    for (dst, t) in out.iter_mut().zip(&sum) {
+        let t = t.to_array();
+        *dst = [t[0], t[1], t[2]];
+    }
+}
+
 /// Backward of [`shade_surfels`] for upstream gradients on L_direct and L_indirect. Overwrites
 /// every buffer of `grads` (sized with [`PbrGrads::new`]).
 pub fn shade_surfels_backward(
@@ -467,25 +486,8 @@ pub fn shade_surfels_backward(
                 acc
             },
         )
-        .collect::<Vec<_>>()
-        .into_iter()
-        .fold(Vec::new(), |mut a, b| {
-            if a.is_empty() {
-                return b;
-            }
-            for (x, y) in a.iter_mut().zip(&b) {
-                *x += *y;
-            }
-            a
-        });
-    if v_env.is_empty() {
-        grads.v_env.iter_mut().for_each(|x| *x = [0.0; 3]);
-    } else {
-        for (dst, t) in grads.v_env.iter_mut().zip(&v_env) {
-            let t = t.to_array();
-            *dst = [t[0], t[1], t[2]];
-        }
-    }
+        .collect::<Vec<_>>();
+    store_env_gradient(v_env, &mut grads.v_env);
     Ok(())
 }
 
@@ -586,23 +588,9 @@ pub fn shade_subset_backward(
                 acc
             },
         )
-        .collect::<Vec<_>>()
-        .into_iter()
-        .fold(Vec::new(), |mut a, b| {
-            if a.is_empty() {
-                return b;
-            }
-            for (x, y) in a.iter_mut().zip(&b) {
-                *x += *y;
-            }
-            a
-        });
-    grads.v_env.clear();
+        .collect::<Vec<_>>();
     grads.v_env.resize(texels, [0.0; 3]);
-    for (dst, t) in grads.v_env.iter_mut().zip(&v_env) {
-        let t = t.to_array();
-        *dst = [t[0], t[1], t[2]];
-    }
+    store_env_gradient(v_env, &mut grads.v_env);
     Ok(())
 }
 

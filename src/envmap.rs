@@ -385,8 +385,7 @@ mod tests {
     /// A finite but absurd texel is refused naming the file; the brightest plausible one loads.
     #[test]
     fn absurdly_bright_maps_are_refused() {
-        let dir = std::env::temp_dir().join(format!("radiogs-env-bright-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_dir::TempDir::new("env-bright");
         let path = dir.join("bright.exr");
         let mut env = EnvMap::constant(8, 4, [1.0; 3]);
         env.texels[5] = [3e38, 1.0, 1.0];
@@ -404,7 +403,6 @@ mod tests {
         assert!(err.contains("empty.hdr") && err.contains("ends early"), "{err}");
         let err = EnvMap::load(&dir.join("cut.exr")).unwrap_err().to_string();
         assert!(err.contains("cut.exr") && !err.contains("fill whole buffer"), "{err}");
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

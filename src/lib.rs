@@ -18,6 +18,8 @@ pub mod sh;
 pub mod shade;
 pub mod surfels;
 pub mod synth;
+#[cfg(test)]
+pub(crate) mod test_dir;
 pub mod trace;
 pub mod train;
 

@@ -463,8 +463,7 @@ mod tests {
 
     #[test]
     fn prepare_env_resamples_and_rotates() {
-        let dir = std::env::temp_dir().join(format!("radiogs-relight-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_dir::TempDir::new("relight");
         let mut env = EnvMap::constant(64, 32, [0.1; 3]);
         // A bright spot at +x (u = 0.5).
         env.texels[16 * 64 + 32] = [50.0; 3];

@@ -3,6 +3,10 @@
 
 use std::process::Command;
 
+#[path = "../src/test_dir.rs"]
+mod test_dir;
+use test_dir::TempDir;
+
 fn radiogs(args: &[&str]) -> (i32, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_radiogs")).args(args).output().expect("run radiogs");
     (
@@ -12,11 +16,9 @@ fn radiogs(args: &[&str]) -> (i32, String, String) {
     )
 }
 
-fn temp_dir(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("radiogs-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh folder, removed at the end of the test (pass or fail).
+fn temp_dir(name: &str) -> TempDir {
+    TempDir::new(&format!("cli-{name}"))
 }
 
 #[test]

@@ -11,16 +11,18 @@ use radiogs::pbr_scene::PbrScene;
 use radiogs::surfels::{Surfels, quat_with_normal};
 use radiogs::train::checkpoint::Checkpoint;
 use radiogs::train::config::{Background, TrainConfig};
-use std::path::{Path, PathBuf};
+use std::path::Path;
+
+#[path = "../src/test_dir.rs"]
+mod test_dir;
+use test_dir::TempDir;
 
 const TRUE_ALBEDO: [f32; 3] = [0.6, 0.35, 0.15];
 const LIGHT: f32 = 1.2;
 
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("radiogs-inv-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh folder, removed at the end of the test (pass or fail).
+fn temp_dir(name: &str) -> TempDir {
+    TempDir::new(&format!("inv-{name}"))
 }
 
 /// The settings every inverse test here shares: its data and run folders, a black background,
@@ -91,8 +93,9 @@ fn make_dataset(dir: &Path) -> Surfels {
     gt
 }
 
-/// The dataset and an nvs checkpoint with the right geometry, in fresh folders named by `tag`.
-fn dataset_and_nvs_run(tag: &str) -> (PathBuf, Dataset, PathBuf) {
+/// The dataset and an nvs checkpoint with the right geometry, in fresh folders named by `tag`
+/// (removed when the returned guards drop, at the end of the caller).
+fn dataset_and_nvs_run(tag: &str) -> (TempDir, Dataset, TempDir) {
     let data = temp_dir(&format!("{tag}-data"));
     let gt = make_dataset(&data);
     let dataset = Dataset::open(&data).unwrap();
@@ -226,7 +229,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
 
     // Eval writes PBR / albedo metrics; relight (traced) and render run on the result.
     radiogs::eval::run(&radiogs::eval::EvalArgs {
-        run: run.clone(),
+        run: run.to_path_buf(),
         data: None,
         json: None,
         limit: 0,
@@ -248,9 +251,9 @@ fn lambert_plane_albedo_converges_under_known_light() {
     {
         let out = temp_dir(name);
         radiogs::relight::run(&radiogs::relight::RelightArgs {
-            run: run.clone(),
+            run: run.to_path_buf(),
             envmap: env_file.clone(),
-            out: out.clone(),
+            out: out.to_path_buf(),
             mode,
             iters: 20,
             rotate: 30.0,

@@ -8,13 +8,15 @@ use radiogs::io::image::{Image, write_image};
 use radiogs::raster::{self, RasterSettings};
 use radiogs::surfels::{Surfels, quat_with_normal};
 use radiogs::train::config::{Background, TrainConfig};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("radiogs-tiny-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+#[path = "../src/test_dir.rs"]
+mod test_dir;
+use test_dir::TempDir;
+
+/// A fresh folder, removed at the end of the test (pass or fail).
+fn temp_dir(name: &str) -> TempDir {
+    TempDir::new(&format!("tiny-{name}"))
 }
 
 /// Four views of three overlapping disks, written as a Blender-layout dataset.
@@ -272,7 +274,7 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
     let eval = |resolution: Option<u32>, json: &str| -> serde_json::Value {
         let path = run.join(json);
         radiogs::eval::run(&radiogs::eval::EvalArgs {
-            run: run.clone(),
+            run: run.to_path_buf(),
             data: None,
             json: Some(path.clone()),
             limit: 0,
@@ -304,7 +306,7 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
     ] {
         let out = run.join(format!("render-{}-{}-{}", size.0, size.1, orbit.is_some()));
         radiogs::commands::render::run(&RenderArgs {
-            run: Some(run.clone()),
+            run: Some(run.to_path_buf()),
             out: out.clone(),
             width: given.map(|g: (u32, u32)| g.0),
             height: given.map(|g| g.1),

@@ -396,6 +396,7 @@ fn render_pbr_modes(args: &RenderArgs, cameras: &[Camera]) -> anyhow::Result<()>
 mod tests {
     use super::*;
     use crate::surfels::{Surfels, quat_with_normal};
+    use crate::test_dir::TempDir;
     use glam::Vec3;
 
     /// A unit sphere of outward-facing surfels coloured by their normal, and a camera file.
@@ -432,8 +433,7 @@ mod tests {
 
     #[test]
     fn renders_png_exr_and_aux_of_a_ply_sphere() {
-        let dir = std::env::temp_dir().join(format!("radiogs-render-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("render");
         let (ply, cams) = sphere_scene(&dir);
         let out = dir.join("out");
         let mut args = RenderArgs { aux: true, ..ply_args(ply, cams, &out) };
@@ -493,9 +493,6 @@ mod tests {
         args.k = 8;
         args.filter_inv_square = Some(f32::NAN);
         assert!(run(&args).unwrap_err().to_string().contains("--filter-inv-square"));
-        if std::env::var_os("RADIOGS_KEEP_TEST_OUTPUT").is_none() {
-            std::fs::remove_dir_all(&dir).ok();
-        }
     }
 
     /// The frames of an APNG, decoded independently of `write_apng`, and its play count.
@@ -518,8 +515,7 @@ mod tests {
 
     #[test]
     fn an_orbit_renders_frames_around_the_object_and_their_animation() {
-        let dir = std::env::temp_dir().join(format!("radiogs-orbit-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("orbit");
         let (ply, cams) = sphere_scene(&dir);
         let out = dir.join("orbit");
         let mut args = RenderArgs { orbit: Some(6), orbit_elevation: Some(30.0), ..ply_args(ply, cams, &out) };
@@ -560,8 +556,5 @@ mod tests {
         args.orbit = Some(4);
         args.orbit_elevation = Some(91.0);
         assert!(run(&args).unwrap_err().to_string().contains("--orbit-elevation"));
-        if std::env::var_os("RADIOGS_KEEP_TEST_OUTPUT").is_none() {
-            std::fs::remove_dir_all(&dir).ok();
-        }
     }
 }

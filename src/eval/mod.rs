@@ -787,7 +787,7 @@ mod tests {
     #[test]
     fn a_run_finds_its_relative_dataset_from_another_folder() {
         use std::path::{Path, PathBuf};
-        let root = std::env::temp_dir().join(format!("radiogs-where-{}", std::process::id()));
+        let root = crate::test_dir::TempDir::new("where");
         let (data, out) = (PathBuf::from("scan-data"), PathBuf::from("runs/scan"));
         std::fs::create_dir_all(root.join(&data)).unwrap();
         std::fs::create_dir_all(root.join(&out)).unwrap();
@@ -798,12 +798,11 @@ mod tests {
         assert_eq!(super::dataset_of_run(&moved, &data, &out), data);
         // Found as recorded (relative to here), or absolute: unchanged.
         assert_eq!(super::dataset_of_run(&root.join(&out), Path::new("src"), &out), Path::new("src"));
-        assert_eq!(super::dataset_of_run(&root.join(&out), &root, &out), root);
+        assert_eq!(super::dataset_of_run(&root.join(&out), &root, &out), root.path());
         // Through load_run_config, as render and eval read a run.
         let cfg = crate::train::config::TrainConfig { data: data.clone(), out: out.clone(), ..Default::default() };
         cfg.save(&root.join(&out).join("config.toml")).unwrap();
         assert_eq!(super::load_run_config(&root.join(&out)).unwrap().data, root.join(&data));
-        std::fs::remove_dir_all(&root).ok();
     }
 
     use super::*;
@@ -824,9 +823,7 @@ mod tests {
     #[test]
     fn a_run_without_its_ply_takes_the_newest_stages_checkpoint() {
         use crate::train::checkpoint::Checkpoint;
-        let run = std::env::temp_dir().join(format!("radiogs-eval-ckpt-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&run);
-        std::fs::create_dir_all(&run).unwrap();
+        let run = crate::test_dir::TempDir::new("eval-ckpt");
         assert!(load_run_surfels(&run).unwrap_err().to_string().contains("checkpoint_inverse.bin"));
         let write = |name: &str, count: usize, age_s: u64| {
             let mut c = Checkpoint::default();
@@ -841,7 +838,6 @@ mod tests {
         assert_eq!(load_run_surfels(&run).unwrap().len(), 7);
         write("checkpoint.bin", 5, 1);
         assert_eq!(load_run_surfels(&run).unwrap().len(), 5);
-        let _ = std::fs::remove_dir_all(&run);
     }
 
     /// The same light scores 0; a light twice as bright scores ln 2 unless the albedo scale

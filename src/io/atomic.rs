@@ -121,13 +121,13 @@ impl Drop for PartialDir {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_dir::TempDir;
 
     /// A write through a symlink (and a chain of two) replaces the target's content and keeps
     /// the links; a path that is a folder or a device is refused before anything is written.
     #[test]
     fn links_are_followed_and_non_files_refused() {
-        let dir = std::env::temp_dir().join(format!("radiogs-atomic-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let dir = TempDir::new("atomic");
         std::fs::create_dir_all(dir.join("sub")).unwrap();
         let target = dir.join("sub/target.json");
         std::fs::write(&target, "old").unwrap();
@@ -147,15 +147,13 @@ mod tests {
         assert!(dir.join("sub").is_dir());
         let err = write_atomic(Path::new("/dev/null"), b"x").unwrap_err().to_string();
         assert!(err.contains("/dev/null") && err.contains("not a regular file"), "{err}");
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A partial folder is removed when dropped and replaces its target (and only then) when
     /// published.
     #[test]
     fn a_partial_folder_replaces_its_target_only_when_published() {
-        let dir = std::env::temp_dir().join(format!("radiogs-partial-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let dir = TempDir::new("partial");
         let target = dir.join("out");
         std::fs::create_dir_all(&target).unwrap();
         std::fs::write(target.join("old.txt"), "old").unwrap();
@@ -172,6 +170,5 @@ mod tests {
         assert!(!target.join("old.txt").exists() && target.join("new.txt").is_file());
         assert!(!dir.join("out.partial").exists());
         assert!(PartialDir::beside(Path::new("/")).is_err());
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -558,11 +558,9 @@ mod tests {
     use super::*;
     use crate::io::image::write_image;
 
-    fn temp_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("radiogs-ds-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
+    /// A fresh folder, removed at the end of the test (pass or fail).
+    fn temp_dir(name: &str) -> crate::test_dir::TempDir {
+        crate::test_dir::TempDir::new(&format!("ds-{name}"))
     }
 
     const C2W: &str = "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]";

@@ -571,6 +571,7 @@ pub fn write_image(path: &Path, img: &Image) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_dir::TempDir;
 
     #[test]
     fn downscale_averages_blocks_weighting_colour_by_alpha() {
@@ -614,7 +615,7 @@ mod tests {
 
     #[test]
     fn png_and_exr_round_trip() {
-        let dir = std::env::temp_dir().join(format!("radiogs-img-{}", std::process::id()));
+        let dir = TempDir::new("img");
         let mut img = Image::new(5, 3, 4);
         for (i, v) in img.data.iter_mut().enumerate() {
             *v = (i % 256) as f32 / 255.0;
@@ -628,7 +629,6 @@ mod tests {
         img.data[7] = 12.5;
         write_image(&dir.join("a.exr"), &img).unwrap();
         assert_eq!(read_rgba(&dir.join("a.exr")).unwrap(), img);
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// Many blocks compressed in parallel must still give the same bytes every time (the exr
@@ -645,17 +645,16 @@ mod tests {
             for _ in 0..20 {
                 assert!(encode_exr(&img, path).unwrap() == first, "{channels} channels: bytes differ");
             }
-            let dir = std::env::temp_dir().join(format!("radiogs-exr-{}-{channels}", std::process::id()));
+            let dir = TempDir::new(&format!("exr-{channels}"));
             write_image(&dir.join("a.exr"), &img).unwrap();
             let back = read_rgba(&dir.join("a.exr")).unwrap();
             assert_eq!(back, expand_to(&img, 4));
-            std::fs::remove_dir_all(&dir).unwrap();
         }
     }
 
     #[test]
     fn an_animation_refuses_frames_of_another_size_by_name() {
-        let dir = std::env::temp_dir().join(format!("radiogs-apng-{}", std::process::id()));
+        let dir = TempDir::new("apng");
         let (a, b) = (dir.join("a.png"), dir.join("b.png"));
         write_image(&a, &Image::new(4, 3, 4)).unwrap();
         write_image(&b, &Image::new(3, 4, 4)).unwrap();
@@ -666,13 +665,12 @@ mod tests {
         assert!(err.contains("b.png") && err.contains("3 × 4"), "{err}");
         assert!(!dir.join("bad.apng").exists());
         assert!(write_apng(&out, &[], 24).is_err() && write_apng(&out, &[a], 0).is_err());
-        std::fs::remove_dir_all(&dir).ok();
     }
 
     /// Other formats (JPEG here) are refused by name, nothing written.
     #[test]
     fn unsupported_output_format_is_refused() {
-        let dir = std::env::temp_dir().join(format!("radiogs-fmt-{}", std::process::id()));
+        let dir = TempDir::new("fmt");
         let path = dir.join("a.jpg");
         let err = write_image(&path, &Image::new(4, 4, 3)).unwrap_err().to_string();
         assert!(err.contains("a.jpg") && err.contains("png, exr or hdr"), "{err}");
@@ -681,7 +679,7 @@ mod tests {
 
     #[test]
     fn truncated_png_names_the_file() {
-        let dir = std::env::temp_dir().join(format!("radiogs-trunc-{}", std::process::id()));
+        let dir = TempDir::new("trunc");
         let img = Image::new(16, 16, 4);
         let path = dir.join("view.png");
         write_image(&path, &img).unwrap();
@@ -703,7 +701,6 @@ mod tests {
                 assert!(err.contains("view.png") && err.contains("ends early"), "{len}: {err}");
             }
         }
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A PNG built with the png encoder: any colour type and depth, optional palette and tRNS,
@@ -776,8 +773,7 @@ mod tests {
                 vec![[o, 0.0, 0.0, b(128.0)], [0.0, o, 0.0, o], [0.0, 0.0, 0.2, o]],
             ),
         ];
-        let dir = std::env::temp_dir().join(format!("radiogs-pngtypes-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("pngtypes");
         let path = dir.join("p.png");
         for (i, (bytes, expect)) in cases.iter().enumerate() {
             std::fs::write(&path, bytes).unwrap();
@@ -791,7 +787,6 @@ mod tests {
             assert_eq!(check_image(&path).unwrap(), (img.width, 1));
             assert_eq!(image_dimensions(&path).unwrap(), (img.width, 1));
         }
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A palette index past the palette's end is refused by name (the decoder's expansion would
@@ -800,8 +795,7 @@ mod tests {
     fn palette_indices_past_the_palette_are_refused() {
         use png::BitDepth::{Eight, Four, One};
         use png::ColorType::Indexed;
-        let dir = std::env::temp_dir().join(format!("radiogs-pngpalette-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("pngpalette");
         let path = dir.join("p.png");
         let two = [255, 0, 0, 0, 255, 0];
         let cases: [(Vec<u8>, Option<&str>); 5] = [
@@ -830,7 +824,6 @@ mod tests {
                 }
             }
         }
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
@@ -843,7 +836,7 @@ mod tests {
             }
             let first = encode_png(&img, path).unwrap();
             assert!(encode_png(&img, path).unwrap() == first);
-            let dir = std::env::temp_dir().join(format!("radiogs-pngrt-{}-{channels}", std::process::id()));
+            let dir = TempDir::new(&format!("pngrt-{channels}"));
             write_image(&dir.join("a.png"), &img).unwrap();
             let back = read_rgba(&dir.join("a.png")).unwrap();
             let expect = expand_to(&img, 4);
@@ -852,14 +845,12 @@ mod tests {
                 let level = (a.clamp(0.0, 1.0) * 255.0 + 0.5).floor() / 255.0;
                 assert!((b - level).abs() < 1e-7, "{a} → {b}");
             }
-            std::fs::remove_dir_all(&dir).unwrap();
         }
     }
 
     #[test]
     fn corrupt_and_oversized_pngs_are_refused_by_name() {
-        let dir = std::env::temp_dir().join(format!("radiogs-pngbad-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("pngbad");
         let path = dir.join("bad.png");
         let mut img = Image::new(9, 5, 4);
         img.data.iter_mut().enumerate().for_each(|(i, v)| *v = (i % 7) as f32 / 6.0);
@@ -891,7 +882,6 @@ mod tests {
             // The size alone is read from the header.
             assert_eq!(image_dimensions(&path).unwrap(), (w, h));
         }
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
@@ -929,20 +919,17 @@ mod tests {
             bytes.extend(a);
         }
         bytes.push(0);
-        let dir = std::env::temp_dir().join(format!("radiogs-exrhuge-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("exrhuge");
         let path = dir.join("huge.exr");
         std::fs::write(&path, &bytes).unwrap();
         assert_eq!(image_dimensions(&path).unwrap(), (200_000, 100_000));
         let err = read_rgba(&path).unwrap_err().to_string();
         assert!(err.contains("huge.exr") && err.contains("more than the"), "{err}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn formats_follow_the_extension() {
-        let dir = std::env::temp_dir().join(format!("radiogs-ext-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = TempDir::new("ext");
         let mut img = Image::new(12, 6, 3);
         img.data.iter_mut().enumerate().for_each(|(i, v)| *v = i as f32 * 0.75);
         for name in ["a.HDR", "b.hdr", "c.exr", "d.Png"] {
@@ -963,6 +950,5 @@ mod tests {
         std::fs::write(dir.join("f.hdr"), b"").unwrap();
         let err = image_dimensions(&dir.join("f.hdr")).unwrap_err().to_string();
         assert!(err.contains("f.hdr") && err.contains("ends early"), "{err}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

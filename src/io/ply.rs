@@ -378,10 +378,11 @@ mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
 
-    fn temp(name: &str) -> std::path::PathBuf {
-        let dir = std::env::temp_dir().join(format!("radiogs-ply-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir.join("s.ply")
+    /// A fresh folder (removed when the guard drops, pass or fail) and `s.ply` in it.
+    fn temp(name: &str) -> (crate::test_dir::TempDir, std::path::PathBuf) {
+        let dir = crate::test_dir::TempDir::new(&format!("ply-{name}"));
+        let path = dir.join("s.ply");
+        (dir, path)
     }
 
     fn random_surfels(n: usize) -> Surfels {
@@ -397,7 +398,7 @@ mod tests {
     #[test]
     fn the_training_filter_is_recorded_in_the_header() {
         let s = random_surfels(5);
-        let path = temp("filter");
+        let (_dir, path) = temp("filter");
         write_ply_trained(&path, &s, Some(8.0)).unwrap();
         assert_eq!(read_ply_filter_inv_square(&path).unwrap(), Some(8.0));
         // The comment does not disturb the reader.
@@ -413,13 +414,12 @@ mod tests {
         std::fs::write(&path, &damaged).unwrap();
         let err = read_ply_filter_inv_square(&path).unwrap_err().to_string();
         assert!(err.contains("filter_inv_square") && err.contains("not a number"), "{err}");
-        std::fs::remove_dir_all(path.parent().unwrap()).ok();
     }
 
     #[test]
     fn round_trip_is_bit_exact() {
         let s = random_surfels(57);
-        let path = temp("rt");
+        let (_dir, path) = temp("rt");
         write_ply(&path, &s).unwrap();
         let back = read_ply(&path).unwrap();
         assert_eq!(back, s);
@@ -432,7 +432,7 @@ mod tests {
     #[test]
     fn double_properties_and_crlf_headers_load() {
         let s = random_surfels(3);
-        let path = temp("double");
+        let (_dir, path) = temp("double");
         write_ply(&path, &s).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         let body = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
@@ -453,7 +453,6 @@ mod tests {
         std::fs::write(&path, &crlf).unwrap();
         assert_eq!(read_ply(&path).unwrap(), s);
         assert_eq!(read_ply_info(&path).unwrap().count, 3);
-        std::fs::remove_dir_all(path.parent().unwrap()).ok();
     }
 
     /// A file in the exact layout of the official 2DGS `save_ply` (no material fields).
@@ -485,7 +484,7 @@ mod tests {
                 bytes.extend(v.to_le_bytes());
             }
         }
-        let path = temp("official");
+        let (_dir, path) = temp("official");
         std::fs::write(&path, bytes).unwrap();
         let back = read_ply(&path).unwrap();
         assert_eq!(back.means, s.means);
@@ -496,7 +495,7 @@ mod tests {
 
     #[test]
     fn bad_files_give_clear_errors() {
-        let path = temp("bad");
+        let (_dir, path) = temp("bad");
         std::fs::write(
             &path,
             b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\nend_header\n",

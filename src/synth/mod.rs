@@ -415,6 +415,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_dir::TempDir;
 
     fn tiny(out: PathBuf) -> SynthArgs {
         SynthArgs {
@@ -431,8 +432,8 @@ mod tests {
     /// Settings that cannot make a dataset are refused by name, and nothing is written.
     #[test]
     fn bad_settings_write_nothing() {
-        let out = std::env::temp_dir().join(format!("radiogs-synth-bad-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&out);
+        let base = TempDir::new("synth-bad-settings");
+        let out = base.join("out");
         let cases = [
             (SynthArgs { train_views: 0, ..tiny(out.clone()) }, "--train-views"),
             (SynthArgs { relight_envs: Some(vec!["sky".into(), "nope".into()]), ..tiny(out.clone()) }, "'nope'"),
@@ -452,7 +453,7 @@ mod tests {
 
     #[test]
     fn test_cameras_come_from_a_dataset_folder_or_a_transforms_file() {
-        let base = std::env::temp_dir().join(format!("radiogs-synth-cams-{}", std::process::id()));
+        let base = TempDir::new("synth-cams");
         let src = base.join("src");
         run(&SynthArgs { test_views: 2, ..tiny(src.clone()) }).unwrap();
         let matrices = |dir: &std::path::Path| -> Vec<serde_json::Value> {
@@ -492,12 +493,11 @@ mod tests {
         assert!(format!("{err:#}").contains("--test-cameras"), "{err:#}");
         // A synthesis that fails after it began writing leaves nothing behind.
         assert!(!base.join("bad").exists() && !base.join("bad.partial").exists());
-        std::fs::remove_dir_all(&base).unwrap();
     }
 
     #[test]
     fn dataset_layout_and_same_seed_same_bytes() {
-        let base = std::env::temp_dir().join(format!("radiogs-synth-{}", std::process::id()));
+        let base = TempDir::new("synth-layout");
         let (a, b) = (base.join("a"), base.join("b"));
         run(&tiny(a.clone())).unwrap();
         run(&tiny(b.clone())).unwrap();
@@ -541,15 +541,13 @@ mod tests {
         }
         assert_eq!(meta["imw"], 16);
         assert_eq!(meta["envmap"], "sky");
-        std::fs::remove_dir_all(&base).unwrap();
     }
 
     /// `--elevation` and `--azimuth` set the band every camera lies in; bad ranges are refused
     /// before anything is written.
     #[test]
     fn camera_band_flags_bound_every_camera() {
-        let base = std::env::temp_dir().join(format!("radiogs-synth-band-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&base);
+        let base = TempDir::new("synth-band");
         let out = base.join("band");
         let args = SynthArgs {
             train_views: 6,
@@ -584,15 +582,14 @@ mod tests {
             assert!(err.contains(says), "{err}");
             assert!(!bad.exists() && !base.join("bad.partial").exists());
         }
-        std::fs::remove_dir_all(&base).unwrap();
     }
 
     /// A folder that holds files is refused without `--overwrite` (and left as it was); with it
     /// the new dataset replaces the old one whole, so no view of the old one survives.
     #[test]
     fn an_existing_dataset_is_replaced_only_with_overwrite() {
-        let out = std::env::temp_dir().join(format!("radiogs-synth-over-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&out);
+        let base = TempDir::new("synth-over");
+        let out = base.join("out");
         run(&SynthArgs { test_views: 2, ..tiny(out.clone()) }).unwrap();
         let before = std::fs::read(out.join("transforms_test.json")).unwrap();
         let err = run(&SynthArgs { test_views: 1, ..tiny(out.clone()) }).unwrap_err().to_string();
@@ -600,7 +597,7 @@ mod tests {
         assert_eq!(std::fs::read(out.join("transforms_test.json")).unwrap(), before);
         run(&SynthArgs { test_views: 1, overwrite: true, ..tiny(out.clone()) }).unwrap();
         assert!(out.join("test_000").is_dir() && !out.join("test_001").exists());
-        assert!(!out.with_file_name(format!("radiogs-synth-over-{}.partial", std::process::id())).exists());
+        assert!(!base.join("out.partial").exists());
         // An empty folder is fine without the flag (made beforehand, as scripts do).
         let empty = out.join("empty");
         std::fs::create_dir_all(&empty).unwrap();
@@ -608,16 +605,15 @@ mod tests {
         assert!(err.contains("not empty"), "{err}");
         run(&SynthArgs { train_views: 1, ..tiny(empty.clone()) }).unwrap();
         assert!(empty.join("transforms_train.json").is_file());
-        std::fs::remove_dir_all(&out).unwrap();
     }
 
     #[test]
     fn bad_arguments_are_errors_not_panics() {
-        let out = std::env::temp_dir().join(format!("radiogs-synth-bad-{}", std::process::id()));
+        let base = TempDir::new("synth-bad-args");
+        let out = base.join("out");
         let err = run(&SynthArgs { scene: "nope".into(), ..tiny(out.clone()) }).unwrap_err().to_string();
         assert!(err.contains("nope"), "{err}");
         let err = run(&SynthArgs { relight_envs: Some(vec!["moon".into()]), ..tiny(out.clone()) }).unwrap_err();
         assert!(format!("{err:#}").contains("moon"));
-        let _ = std::fs::remove_dir_all(&out);
     }
 }

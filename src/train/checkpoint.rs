@@ -173,7 +173,7 @@ mod tests {
 
     #[test]
     fn round_trip_and_refusals() {
-        let dir = std::env::temp_dir().join(format!("radiogs-ckpt-{}", std::process::id()));
+        let dir = crate::test_dir::TempDir::new("ckpt");
         let path = dir.join("a.ckpt");
         let s = Surfels::random_in_box(17, [0.0; 3], [1.0; 3], 2);
         let mut c = Checkpoint { meta: serde_json::json!({"iteration": 42}), ..Default::default() };

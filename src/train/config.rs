@@ -706,8 +706,7 @@ mod tests {
         let back: TrainConfig = toml::from_str(&text).unwrap();
         assert_eq!(toml::to_string(&back).unwrap(), text);
 
-        let dir = std::env::temp_dir().join(format!("radiogs-cfg-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_dir::TempDir::new("cfg");
         let file = dir.join("c.toml");
         std::fs::write(&file, "iters = 123\nwindow = 4\n").unwrap();
         let mut cli = TrainConfig { config: Some(file.clone()), ..TrainConfig::default() };
@@ -802,8 +801,7 @@ mod tests {
     /// values (what a run saved before the setting was trained with); a file that names them wins.
     #[test]
     fn a_settings_file_without_a_key_gets_the_built_in_default() {
-        let dir = std::env::temp_dir().join(format!("radiogs-cfg-defaults-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_dir::TempDir::new("cfg-defaults");
         let file = dir.join("partial.toml");
         std::fs::write(&file, "iters = 3000\n").unwrap();
         let cli = TrainConfig { config: Some(file.clone()), ..TrainConfig::default() };
@@ -845,7 +843,6 @@ mod tests {
         assert!(!named.scale_position_lr);
         assert_eq!(named.filter_inv_square, 2.0);
         assert_eq!(named.opacity_reset_cap, 0.01);
-        std::fs::remove_dir_all(&dir).ok();
     }
 
     /// `--resume` continues with the run's saved settings (keys the file predates at their
@@ -853,7 +850,7 @@ mod tests {
     /// the built-in defaults.
     #[test]
     fn resume_keeps_the_runs_saved_settings() {
-        let dir = std::env::temp_dir().join(format!("radiogs-cfg-resume-{}", std::process::id()));
+        let dir = crate::test_dir::TempDir::new("cfg-resume");
         let run = dir.join("run");
         std::fs::create_dir_all(&run).unwrap();
         let saved = "out = \"elsewhere\"\npbr_samples = 16\nenv_sample_height = 8\ncache_every = 100\niters = 3000\n";
@@ -880,6 +877,5 @@ mod tests {
         assert!(err.contains("config.toml") && err.contains("pbr_samplez"), "{err}");
         std::fs::remove_file(run.join("config.toml")).unwrap();
         assert_eq!(TrainConfig::resolve(&cli, &[]).unwrap().pbr_samples, d.pbr_samples);
-        std::fs::remove_dir_all(&dir).ok();
     }
 }

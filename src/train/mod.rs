@@ -200,9 +200,7 @@ mod tests {
     /// Only the inverse stage's files go, and only those present.
     #[test]
     fn stale_inverse_outputs_are_removed_and_nothing_else() {
-        let dir = std::env::temp_dir().join(format!("radiogs-stale-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_dir::TempDir::new("stale");
         for f in ["envmap.exr", "checkpoint_inverse.bin", "checkpoint.bin", "point_cloud.ply", "config.toml"] {
             std::fs::write(dir.join(f), "x").unwrap();
         }
@@ -212,6 +210,5 @@ mod tests {
         left.sort();
         assert_eq!(left, ["checkpoint.bin", "config.toml", "point_cloud.ply"]);
         super::remove_stale_inverse_outputs(&dir).unwrap();
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -451,3 +451,44 @@ fn inverse_keeps_the_orientation_of_a_culled_geometry_stage() {
         }
     }
 }
+
+/// `objective_per_view` (the diagnostic behind `examples/probe_objective`): one finite entry per
+/// training view, the same on a second call, no step taken (the checkpoint is unchanged), and
+/// the PBR image term lower at the true albedo than at a wrong one (the light at the truth).
+#[test]
+fn objective_scores_every_view_without_a_step() {
+    use radiogs::train::inverse::{checkpoint_path, objective_per_view};
+    let (data, dataset, run) = dataset_and_nvs_run("objective");
+    let cfg = TrainConfig {
+        inverse_iters: 4,
+        env_init: LIGHT,
+        lr_env: 0.0,
+        pbr_samples: 8,
+        rc_rays: 8,
+        rc_surfels: 16,
+        ..tiny_config(&data, &run)
+    };
+    cfg.save(&run.join("config.toml")).unwrap();
+    radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+    let path = checkpoint_path(&run);
+    let saved = std::fs::read(&path).unwrap();
+    let first = objective_per_view(&cfg, &dataset, 3).unwrap();
+    let second = objective_per_view(&cfg, &dataset, 3).unwrap();
+    assert_eq!(first.len(), 4);
+    for (a, b) in first.iter().zip(&second) {
+        assert!(a.total.is_finite() && a.total > 0.0, "{a:?}");
+        assert_eq!((a.total, a.pbr_l1, a.rc.total), (b.total, b.pbr_l1, b.rc.total));
+    }
+    assert!(std::fs::read(&path).unwrap() == saved, "the objective must not write the checkpoint");
+    let mean_pbr_l1_at = |albedo: [f32; 3]| {
+        let mut c = Checkpoint::load(&path).unwrap();
+        let mut s = c.get_surfels(&path, "params").unwrap();
+        s.albedo_logits.iter_mut().for_each(|l| *l = albedo.map(radiogs::surfels::albedo_to_logit));
+        c.put_surfels("params", &s);
+        c.save(&path).unwrap();
+        let v = objective_per_view(&cfg, &dataset, 3).unwrap();
+        v.iter().map(|l| l.pbr_l1).sum::<f32>() / v.len() as f32
+    };
+    let (truth, wrong) = (mean_pbr_l1_at(TRUE_ALBEDO), mean_pbr_l1_at([0.3, 0.6, 0.8]));
+    assert!(truth < 0.5 * wrong, "PBR L1 at the true albedo {truth}, at a wrong one {wrong}");
+}

@@ -782,6 +782,58 @@ fn iterate(
     l
 }
 
+/// The stage's objective at the run's inverse checkpoint, view by view, without a step: which
+/// state do the losses prefer, over every training view rather than one iteration's view?
+/// (A diagnostic, `examples/probe_objective.rs`.) The cache is re-traced once with `seed`;
+/// each view gets a background and a consistency sample fixed by (`seed`, view), so two runs
+/// of the same scene are scored on the same draws.
+pub fn objective_per_view(cfg: &TrainConfig, dataset: &Dataset, seed: u64) -> anyhow::Result<Vec<InverseLosses>> {
+    let images = TrainImages::load(dataset, Split::Train)?;
+    let ckpt_path = checkpoint_path(&cfg.out);
+    let c = Checkpoint::load(&ckpt_path)?;
+    let mut state = InverseState::from_checkpoint(&ckpt_path, &c, cfg)?;
+    let tracer = Tracer::build(&state.surfels, &trace_settings());
+    state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, cfg.ray_start(state.extent), seed);
+    let env = state.env();
+    let env_s = env.box_downsample(sample_factor(cfg));
+    state.cache.prepare_footprints(&env_s);
+    let split_sum = match cfg.specular {
+        Specular::SplitSum => Some(SplitSum::new(&env)?),
+        Specular::Mc | Specular::Traced => None,
+    };
+    let mut sc = Scratch::default();
+    sc.pbr_image.clip_saturated = cfg.clip_saturated;
+    let mut v_surfels = state.surfels.zeros_like();
+    let mut times = InverseTimes::default();
+    let mut out = Vec::with_capacity(images.cameras.len());
+    for view in 0..images.cameras.len() {
+        let mut rng = iteration_rng(seed, view as u32, 0x0b_1ec7);
+        let bg = match cfg.background {
+            Background::Random => [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()],
+            Background::White => [1.0; 3],
+            Background::Black => [0.0; 3],
+        };
+        v_surfels.fill_zero();
+        v_surfels.sh_degree = state.surfels.sh_degree;
+        out.push(iterate(
+            cfg,
+            &state,
+            &env,
+            &env_s,
+            split_sum.as_ref(),
+            &tracer,
+            &images,
+            view,
+            bg,
+            &mut rng,
+            &mut sc,
+            &mut v_surfels,
+            &mut times,
+        ));
+    }
+    Ok(out)
+}
+
 /// The geometry the inverse stage starts from: the newer of the run's `init` and `nvs`
 /// checkpoints.
 pub fn geometry_checkpoint(run: &Path) -> Option<PathBuf> {

@@ -782,6 +782,23 @@ fn iterate(
     l
 }
 
+/// The iteration's background colour (drawn from `rng` when random).
+fn draw_background(cfg: &TrainConfig, rng: &mut rand_pcg::Pcg64) -> [f32; 3] {
+    match cfg.background {
+        Background::Random => [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()],
+        Background::White => [1.0; 3],
+        Background::Black => [0.0; 3],
+    }
+}
+
+/// The prefiltered env of the split-sum specular path, when the config uses it.
+fn split_sum_for(cfg: &TrainConfig, env: &EnvMap) -> crate::Result<Option<SplitSum>> {
+    Ok(match cfg.specular {
+        Specular::SplitSum => Some(SplitSum::new(env)?),
+        Specular::Mc | Specular::Traced => None,
+    })
+}
+
 /// The stage's objective at the run's inverse checkpoint, view by view, without a step: which
 /// state do the losses prefer, over every training view rather than one iteration's view?
 /// (A diagnostic, `examples/probe_objective.rs`.) The cache is re-traced once with `seed`;
@@ -797,10 +814,7 @@ pub fn objective_per_view(cfg: &TrainConfig, dataset: &Dataset, seed: u64) -> an
     let env = state.env();
     let env_s = env.box_downsample(sample_factor(cfg));
     state.cache.prepare_footprints(&env_s);
-    let split_sum = match cfg.specular {
-        Specular::SplitSum => Some(SplitSum::new(&env)?),
-        Specular::Mc | Specular::Traced => None,
-    };
+    let split_sum = split_sum_for(cfg, &env)?;
     let mut sc = Scratch::default();
     sc.pbr_image.clip_saturated = cfg.clip_saturated;
     let mut v_surfels = state.surfels.zeros_like();
@@ -808,11 +822,7 @@ pub fn objective_per_view(cfg: &TrainConfig, dataset: &Dataset, seed: u64) -> an
     let mut out = Vec::with_capacity(images.cameras.len());
     for view in 0..images.cameras.len() {
         let mut rng = iteration_rng(seed, view as u32, 0x0b_1ec7);
-        let bg = match cfg.background {
-            Background::Random => [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()],
-            Background::White => [1.0; 3],
-            Background::Black => [0.0; 3],
-        };
+        let bg = draw_background(cfg, &mut rng);
         v_surfels.fill_zero();
         v_surfels.sh_degree = state.surfels.sh_degree;
         out.push(iterate(
@@ -937,21 +947,14 @@ pub fn run_until(
         state.iteration += 1;
         let it = state.iteration;
         let mut rng = iteration_rng(cfg.seed, it, 0x1_0000_0011);
-        let bg = match cfg.background {
-            Background::Random => [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()],
-            Background::White => [1.0; 3],
-            Background::Black => [0.0; 3],
-        };
+        let bg = draw_background(cfg, &mut rng);
         let view = view_for_iteration(cfg.seed ^ 0x1a7e, it, images.cameras.len());
         v_surfels.fill_zero();
         v_surfels.sh_degree = state.surfels.sh_degree;
         let env = state.env();
         let env_s = env.box_downsample(sample_factor(cfg));
         state.cache.prepare_footprints(&env_s);
-        let split_sum = match cfg.specular {
-            Specular::SplitSum => Some(SplitSum::new(&env)?),
-            Specular::Mc | Specular::Traced => None,
-        };
+        let split_sum = split_sum_for(cfg, &env)?;
         last = iterate(
             cfg,
             &state,

@@ -26,9 +26,7 @@ pub struct Footprint {
 }
 
 /// A bilinear footprint stored compactly: top-left texel (x0, y0) and the fractions (tx, ty).
-/// `repr(C)`: the shading kernel gathers the four fields by their offsets (`shade/pbr.rs`).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-#[repr(C)]
 pub struct PackedFootprint {
     pub x0: u32,
     pub y0: u32,

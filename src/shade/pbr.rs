@@ -198,30 +198,9 @@ struct Block {
 }
 
 /// Gathers a block: the directions, their cosines, and for the live lanes the env lookup
-/// (its footprint written to `fps` when given, for the backward's scatter). With cached
-/// footprints and no `fps` (the training path) the AVX-512 gathers do it
-/// ([`load_block_gathered`], bitwise the same); otherwise one lane at a time.
+/// (its footprint written to `fps` when given, for the backward's scatter).
 #[inline]
 fn load_block(
-    inp: &PbrInputs,
-    env: &LaneEnv,
-    footprints: Option<&[PackedFootprint]>,
-    n: V3,
-    k0: usize,
-    len: usize,
-    fps: Option<&mut [Footprint; LANES]>,
-) -> Block {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f", target_feature = "avx512vl"))]
-    if let (Some(f), None) = (footprints, &fps) {
-        return load_block_gathered(inp, env, f, n, k0, len);
-    }
-    load_block_per_lane(inp, env, footprints, n, k0, len, fps)
-}
-
-/// [`load_block`] one lane at a time (the reference for the gathered path, and the path with
-/// directions mapped per lookup).
-#[inline]
-fn load_block_per_lane(
     inp: &PbrInputs,
     env: &LaneEnv,
     footprints: Option<&[PackedFootprint]>,
@@ -279,107 +258,6 @@ fn load_block_per_lane(
     let w = f64x8::from(w);
     let cos = dirs[0] * splat(n[0]) + dirs[1] * splat(n[1]) + dirs[2] * splat(n[2]);
     Block { dirs, w, wc: w * cos, vis: f64x8::from(vis), le: le.map(f64x8::from), li: li.map(f64x8::from), live }
-}
-
-/// [`load_block_per_lane`] for cached footprints in AVX-512 gathers (f32, 8 lanes), converted
-/// to f64: the same operations in the same order, so bitwise the same block. Masked gathers
-/// read nothing past `len` or, for the env, on lanes under the horizon.
-#[cfg(all(target_arch = "x86_64", target_feature = "avx512f", target_feature = "avx512vl"))]
-#[inline]
-fn load_block_gathered(
-    inp: &PbrInputs,
-    env: &LaneEnv,
-    footprints: &[PackedFootprint],
-    n: V3,
-    k0: usize,
-    len: usize,
-) -> Block {
-    use std::arch::x86_64::*;
-    let end = k0 + len;
-    // The callers' invariants, checked once so that every gather below stays in bounds.
-    assert!(len <= LANES && end <= inp.dirs.len() && end <= inp.visibility.len() && end <= inp.indirect.len());
-    assert!(end <= footprints.len() && inp.sample_weights.is_none_or(|w| end <= w.len()));
-    let (width, height) = (env.env.width, env.env.height);
-    assert!(env.texels.len() == width * height && width * height * 4 < i32::MAX as usize);
-    // SAFETY: the target features are enabled at compile time (cfg above). Every gather and
-    // load is masked to lanes j < len, whose elements k0 + j lie inside the slices (asserted);
-    // texel indices come from footprints made for this map's size (x0 < width, y0 < height by
-    // `packed_footprint`; `footprints_for` checked the size), and are masked to live lanes.
-    // wide's f64x8 is 64 bytes of eight f64 in lane order, as __m512d.
-    unsafe {
-        let to64 = |x: __m256| std::mem::transmute::<__m512d, f64x8>(_mm512_cvtps_pd(x));
-        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-        let in_len: __mmask8 = _mm256_cmplt_epi32_mask(lane, _mm256_set1_epi32(len as i32));
-        let zero = _mm256_setzero_ps();
-        let stride3 = _mm256_mullo_epi32(lane, _mm256_set1_epi32(3));
-        let gather3 = |base: *const f32, a: i32, mask: __mmask8| {
-            _mm256_mmask_i32gather_ps::<4>(zero, mask, _mm256_add_epi32(stride3, _mm256_set1_epi32(a)), base)
-        };
-        let dir_base = inp.dirs.as_ptr().add(k0) as *const f32;
-        let d32 = [0, 1, 2].map(|a| gather3(dir_base, a, in_len));
-        let d = d32.map(|x| to64(x));
-        // Live: inside the block and above the horizon (n·ω ≤ 0 is dead, NaN live, as per lane).
-        let c = d[0] * splat(n[0]) + d[1] * splat(n[1]) + d[2] * splat(n[2]);
-        let c_raw = std::mem::transmute::<f64x8, __m512d>(c);
-        let live: __mmask8 = in_len & _mm512_cmp_pd_mask::<_CMP_NLE_UQ>(c_raw, _mm512_setzero_pd());
-        let keep = |x: f64x8| {
-            std::mem::transmute::<__m512d, f64x8>(_mm512_maskz_mov_pd(live, std::mem::transmute::<f64x8, __m512d>(x)))
-        };
-        let dirs: [f64x8; 3] = std::array::from_fn(|a| {
-            std::mem::transmute::<__m512d, f64x8>(_mm512_mask_blend_pd(
-                live,
-                _mm512_set1_pd(n[a]),
-                std::mem::transmute::<f64x8, __m512d>(d[a]),
-            ))
-        });
-        let w = match inp.sample_weights {
-            Some(sw) => keep(to64(_mm256_maskz_loadu_ps(in_len, sw.as_ptr().add(k0)))),
-            None => keep(splat(inp.weight as f64)),
-        };
-        let vis = keep(to64(_mm256_maskz_loadu_ps(in_len, inp.visibility.as_ptr().add(k0))));
-        let ind_base = inp.indirect.as_ptr().add(k0) as *const f32;
-        let li = [0, 1, 2].map(|ch| keep(to64(gather3(ind_base, ch, live))));
-        // Footprints (x0, y0, tx, ty; 16 bytes each) → the four texels and weights.
-        let fp_base = footprints.as_ptr().add(k0) as *const i32;
-        let stride4 = _mm256_slli_epi32::<2>(lane);
-        let field = |f: i32| _mm256_add_epi32(stride4, _mm256_set1_epi32(f));
-        let x0 = _mm256_mmask_i32gather_epi32::<4>(_mm256_setzero_si256(), live, field(0), fp_base);
-        let y0 = _mm256_mmask_i32gather_epi32::<4>(_mm256_setzero_si256(), live, field(1), fp_base);
-        let tx = _mm256_mmask_i32gather_ps::<4>(zero, live, field(2), fp_base as *const f32);
-        let ty = _mm256_mmask_i32gather_ps::<4>(zero, live, field(3), fp_base as *const f32);
-        let one_i = _mm256_set1_epi32(1);
-        let x1 = _mm256_add_epi32(x0, one_i);
-        let x1 = _mm256_mask_blend_epi32(
-            _mm256_cmpeq_epi32_mask(x1, _mm256_set1_epi32(width as i32)),
-            x1,
-            _mm256_setzero_si256(),
-        );
-        let y1 = _mm256_min_epu32(_mm256_add_epi32(y0, one_i), _mm256_set1_epi32(height as i32 - 1));
-        let row = |y: __m256i| _mm256_mullo_epi32(y, _mm256_set1_epi32(width as i32));
-        let index = [
-            _mm256_add_epi32(row(y0), x0),
-            _mm256_add_epi32(row(y0), x1),
-            _mm256_add_epi32(row(y1), x0),
-            _mm256_add_epi32(row(y1), x1),
-        ];
-        let one = _mm256_set1_ps(1.0);
-        let (ux, uy) = (_mm256_sub_ps(one, tx), _mm256_sub_ps(one, ty));
-        let weight = [_mm256_mul_ps(ux, uy), _mm256_mul_ps(tx, uy), _mm256_mul_ps(ux, ty), _mm256_mul_ps(tx, ty)];
-        let texel_base = env.texels.as_ptr() as *const f32;
-        let le = [0, 1, 2].map(|ch| {
-            let texel = |q: usize| {
-                let at = _mm256_add_epi32(_mm256_slli_epi32::<2>(index[q]), _mm256_set1_epi32(ch));
-                _mm256_mmask_i32gather_ps::<4>(zero, live, at, texel_base)
-            };
-            let mut e = _mm256_mul_ps(texel(0), weight[0]);
-            for q in 1..4 {
-                e = _mm256_add_ps(e, _mm256_mul_ps(texel(q), weight[q]));
-            }
-            keep(to64(e))
-        });
-        let cos = dirs[0] * splat(n[0]) + dirs[1] * splat(n[1]) + dirs[2] * splat(n[2]);
-        Block { dirs, w, wc: w * cos, vis, le, li, live: std::array::from_fn(|j| live >> j & 1 == 1) }
-    }
 }
 
 /// One surfel, f64: (direct, indirect). Samples run in blocks of eight lanes (f64x8): the
@@ -451,10 +329,7 @@ fn backward_one(
     let mut fps = [Footprint { index: [0; 4], weight: [0.0; 4] }; LANES];
     for k0 in (i * s..(i + 1) * s).step_by(LANES) {
         let len = (i * s + s - k0).min(LANES);
-        // With cached footprints the scatter below unpacks them again (a few integer ops)
-        // rather than storing them here: copying a just-built footprint stalled on store
-        // forwarding (16 % of `load_block` in a profile).
-        let b = load_block(inp, env, footprints, n, k0, len, footprints.is_none().then_some(&mut fps));
+        let b = load_block(inp, env, footprints, n, k0, len, Some(&mut fps));
         // g = V·Le ⊙ v_dir + L_ind ⊙ v_ind per channel (the incident side seen by v); the
         // lobe's upstream gradient v_f = wc·g does not depend on f.
         let g: [f64x8; 3] = std::array::from_fn(|ch| v_dir8[ch] * b.vis * b.le[ch] + v_ind8[ch] * b.li[ch]);
@@ -497,10 +372,7 @@ fn backward_one(
                 if !b.live[j] {
                     continue;
                 }
-                let fp = match footprints {
-                    Some(f) => env.env.unpack(f[k0 + j]),
-                    None => fps[j],
-                };
+                let fp = &fps[j];
                 let v = f32x4::from([v_le[0][j] as f32, v_le[1][j] as f32, v_le[2][j] as f32, 0.0]);
                 for q in 0..4 {
                     v_env[fp.index[q]] += v * f32x4::splat(fp.weight[q]);
@@ -902,51 +774,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    /// The AVX-512 gathers build bitwise the block the per-lane path builds: full and partial
-    /// blocks, lanes under the horizon, per-sample weights or one weight, and footprints in the
-    /// map's last column (the bilinear wrap) and last row (the clamp).
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f", target_feature = "avx512vl"))]
-    #[test]
-    fn gathered_block_is_bitwise_the_per_lane_block() {
-        let env = random_env(16, 32, 5);
-        let lane_env = LaneEnv::new(&env);
-        let mut checked_edges = (false, false);
-        for (s, weighted) in [(13, false), (13, true), (64, false), (5, true)] {
-            let mut case = random_case(5, s, 70 + s as u64);
-            // Directions straight up and down (last / first row) and at azimuth π (the seam).
-            case.dirs[0] = [0.0, 0.0, 1.0];
-            case.dirs[2] = [0.0, 0.0, -1.0];
-            case.dirs[3] = to32(unit_in(&mut rng(3), [-1.0, 0.0, 0.0], 1e-3));
-            let mut rg = rng(s as u64);
-            case.sample_weights = weighted.then(|| (0..case.dirs.len()).map(|_| rg.random_range(0.0..0.5)).collect());
-            let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
-            checked_edges.0 |= packed.iter().any(|p| p.x0 as usize == env.width - 1);
-            checked_edges.1 |= packed.iter().any(|p| p.y0 as usize == env.height - 1);
-            let inp = PbrInputs {
-                footprints: Some(CachedFootprints { data: &packed, width: env.width, height: env.height }),
-                ..case.inputs()
-            };
-            for i in 0..5 {
-                let n = to64(case.normal[i]);
-                for k0 in (i * s..(i + 1) * s).step_by(LANES) {
-                    let len = (i * s + s - k0).min(LANES);
-                    let a = load_block_gathered(&inp, &lane_env, &packed, n, k0, len);
-                    let b = load_block_per_lane(&inp, &lane_env, Some(&packed), n, k0, len, None);
-                    let bits = |x: &Block| {
-                        let mut v: Vec<u64> = Vec::new();
-                        for y in x.dirs.iter().chain([&x.w, &x.wc, &x.vis]).chain(&x.le).chain(&x.li) {
-                            v.extend(y.to_array().map(f64::to_bits));
-                        }
-                        v
-                    };
-                    assert_eq!(bits(&a), bits(&b), "S {s} surfel {i} block at {k0}");
-                    assert_eq!(a.live, b.live, "S {s} surfel {i} block at {k0}");
-                }
-            }
-        }
-        assert!(checked_edges.0 && checked_edges.1, "the cases must reach the last column and row");
     }
 
     #[test]

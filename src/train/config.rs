@@ -355,8 +355,8 @@ pub struct TrainConfig {
     /// published method]: 0 = grey `albedo_init` everywhere (published); 1 = the chromaticity
     /// of its SH colour relative to the light's (read off the near-grey surfels), brightest
     /// channel at `albedo_init` (src/train/albedo_chroma.rs); near-grey surfels start grey.
-    /// Cornell relights 2.6 dB better at 1, spheres 0.3–0.4 dB worse (BENCHMARKS.md session
-    /// 56): for scenes dominated by saturated colours.
+    /// Cornell relights 2.4–2.5 dB better at 1, spheres within 0.2 dB (BENCHMARKS.md session
+    /// 56).
     #[arg(long, default_value_t = 0.0)]
     #[serde(default)]
     pub albedo_init_hue: f32,

@@ -49,9 +49,14 @@ fn main() -> anyhow::Result<()> {
         let per_view = objective_per_view(&cfg, &dataset, seed)?;
         let n = per_view.len() as f64;
         let mut line = format!("{:<40}", run.display());
-        for k in 0..12 {
-            let mean = per_view.iter().map(|l| terms(l)[k].1).sum::<f64>() / n;
-            line += &format!(" {}={:.5}", terms(&per_view[0])[k].0, mean);
+        let mut sums = [0.0f64; 12];
+        for l in &per_view {
+            for (sum, (_, v)) in sums.iter_mut().zip(terms(l)) {
+                *sum += v;
+            }
+        }
+        for ((name, _), sum) in terms(&InverseLosses::default()).iter().zip(sums) {
+            line += &format!(" {name}={:.5}", sum / n);
         }
         println!("{line}");
         totals.push(per_view.iter().map(|l| l.total as f64).collect());

@@ -806,6 +806,9 @@ fn split_sum_for(cfg: &TrainConfig, env: &EnvMap) -> crate::Result<Option<SplitS
 /// of the same scene are scored on the same draws.
 pub fn objective_per_view(cfg: &TrainConfig, dataset: &Dataset, seed: u64) -> anyhow::Result<Vec<InverseLosses>> {
     let images = TrainImages::load(dataset, Split::Train)?;
+    if images.cameras.is_empty() {
+        anyhow::bail!("{}: the dataset has no training views", dataset.root.display());
+    }
     let ckpt_path = checkpoint_path(&cfg.out);
     let c = Checkpoint::load(&ckpt_path)?;
     let mut state = InverseState::from_checkpoint(&ckpt_path, &c, cfg)?;

@@ -123,6 +123,8 @@ fn light_warmup_freezes_materials_then_releases_them() {
         inverse_iters: 12,
         light_warmup: 12,
         env_init: 0.5,
+        // The grey start: every fresh albedo is the one value `albedo_init`.
+        albedo_init_hue: 0.0,
         pbr_samples: 8,
         rc_rays: 8,
         rc_surfels: 16,

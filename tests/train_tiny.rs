@@ -142,6 +142,8 @@ fn init_stage_learns_the_pbr_image_and_resume_is_exact() {
         let cfg = TrainConfig {
             inverse_iters: 1,
             fresh_materials: fresh,
+            // The grey start: every fresh albedo is the one value `albedo_init`.
+            albedo_init_hue: 0.0,
             lr_albedo: 0.0,
             lr_roughness: 0.0,
             lr_env: 0.0,

@@ -351,13 +351,14 @@ pub struct TrainConfig {
     /// Fresh materials and light at the start of the inverse stage [0.3, 0.6, 1.5].
     #[arg(long, default_value_t = 0.3)]
     pub albedo_init: f32,
-    /// How much of each surfel's observed hue the fresh albedo starts with [0; not in the
-    /// published method]: 0 = grey `albedo_init` everywhere (published); 1 = the chromaticity
+    /// How much of each surfel's observed hue the fresh albedo starts with [1; the published
+    /// method starts grey]: 0 = grey `albedo_init` everywhere (published); 1 = the chromaticity
     /// of its SH colour relative to the light's (read off the near-grey surfels), brightest
     /// channel at `albedo_init` (src/train/albedo_chroma.rs); near-grey surfels start grey.
-    /// Cornell relights 2.4–2.5 dB better at 1, spheres within 0.2 dB (BENCHMARKS.md session
-    /// 56).
-    #[arg(long, default_value_t = 0.0)]
+    /// At 1 cornell relights 2.4–2.5 dB better, spheres within 0.2 dB, the demo scene 0.3–0.5
+    /// dB better, on three seeds (BENCHMARKS.md sessions 56–57). Runs saved before the field
+    /// existed load as 0, the start they had.
+    #[arg(long, default_value_t = 1.0)]
     #[serde(default)]
     pub albedo_init_hue: f32,
     #[arg(long, default_value_t = 0.6)]
@@ -477,8 +478,9 @@ impl TrainConfig {
     ///
     /// A key the file leaves out takes the built-in default, including the settings whose
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
-    /// `opacity_reset_cap`, `lambda_albedo_chroma`, `clip_saturated`): those older values are for reading a run folder saved before the
-    /// setting existed (`eval::load_run_config`), not for a hand-written settings file.
+    /// `opacity_reset_cap`, `lambda_albedo_chroma`, `clip_saturated`, `albedo_init_hue`): those
+    /// older values are for reading a run folder saved before the setting existed
+    /// (`eval::load_run_config`), not for a hand-written settings file.
     ///
     /// `--resume` without `--config` reads the run's own `RUN/config.toml` in the file's place,
     /// as a run folder (keys it predates take the values it was trained with), so a resumed run
@@ -746,7 +748,7 @@ mod tests {
                 TrainConfig { albedo_init_hue: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
             assert!(err.contains("albedo_init_hue"), "{err}");
         }
-        assert!(TrainConfig { albedo_init_hue: 1.0, ..TrainConfig::default() }.validate().is_ok());
+        assert!(TrainConfig { albedo_init_hue: 0.0, ..TrainConfig::default() }.validate().is_ok());
         for bad in [-0.01, 1.0, f32::NAN] {
             let err =
                 TrainConfig { prune_contribution: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
@@ -815,6 +817,7 @@ mod tests {
         assert_ne!(d.opacity_reset_cap, opacity_reset_cap_2dgs());
         assert_eq!(merged.lambda_albedo_chroma, d.lambda_albedo_chroma);
         assert_ne!(d.lambda_albedo_chroma, albedo_chroma_off());
+        assert_eq!((merged.albedo_init_hue, d.albedo_init_hue), (1.0, 1.0));
         assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
             toml::to_string(&merged).unwrap()
@@ -836,6 +839,7 @@ mod tests {
         assert_eq!(saved.filter_inv_square, crate::raster::filter_inv_square_2dgs());
         assert_eq!(saved.opacity_reset_cap, opacity_reset_cap_2dgs());
         assert_eq!(saved.lambda_albedo_chroma, albedo_chroma_off());
+        assert_eq!(saved.albedo_init_hue, 0.0, "the grey start runs before the setting had");
 
         std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")
             .unwrap();

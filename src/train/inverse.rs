@@ -157,6 +157,15 @@ impl InverseState {
                 for (logit, a) in surfels.albedo_logits.iter_mut().zip(&fresh) {
                     *logit = a.map(albedo_to_logit);
                 }
+                // Say how much of the start is hued: a grey object starts as the published grey.
+                let hued = fresh.iter().filter(|a| a[0] != a[1] || a[1] != a[2]).count();
+                tracing::info!(
+                    "inverse: {hued} of {} surfels start with the hue they were seen with (--albedo-init-hue {}), \
+                     the rest grey at {}",
+                    fresh.len(),
+                    cfg.albedo_init_hue,
+                    cfg.albedo_init
+                );
             } else {
                 surfels.albedo_logits.iter_mut().for_each(|a| *a = [albedo_to_logit(cfg.albedo_init); 3]);
             }

@@ -355,9 +355,9 @@ pub struct TrainConfig {
     /// method starts grey]: 0 = grey `albedo_init` everywhere (published); 1 = the chromaticity
     /// of its SH colour relative to the light's (read off the near-grey surfels), brightest
     /// channel at `albedo_init` (src/train/albedo_chroma.rs); near-grey surfels start grey.
-    /// At 1 cornell relights 2.4–2.5 dB better, spheres within 0.2 dB, the demo scene 0.3–0.5
-    /// dB better, on three seeds (BENCHMARKS.md sessions 56–57). Runs saved before the field
-    /// existed load as 0, the start they had.
+    /// At 1 cornell relights 2.3–2.5 dB better and spheres 0.05–0.2 dB worse on three inverse
+    /// seeds, the demo scene 0.3–0.5 dB better on two (BENCHMARKS.md sessions 56–57). Runs
+    /// saved before the field existed load as 0, the start they had.
     #[arg(long, default_value_t = 1.0)]
     #[serde(default)]
     pub albedo_init_hue: f32,

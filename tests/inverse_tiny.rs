@@ -152,6 +152,38 @@ fn light_warmup_freezes_materials_then_releases_them() {
     assert!(change > 1e-3, "albedo did not move after the warm-up: {change}");
 }
 
+/// The default start (`albedo_init_hue` 1): each surfel's fresh albedo is `hued_albedo` of the
+/// geometry it starts from, not the grey level. Materials are held by the warm-up so the saved
+/// albedo is the start itself.
+#[test]
+fn default_start_takes_each_surfels_observed_hue() {
+    let (data, dataset, run) = dataset_and_nvs_run("hue-start");
+    let cfg = TrainConfig {
+        inverse_iters: 2,
+        light_warmup: 2,
+        pbr_samples: 8,
+        rc_rays: 8,
+        rc_surfels: 16,
+        ..tiny_config(&data, &run)
+    };
+    assert_eq!(cfg.albedo_init_hue, TrainConfig::default().albedo_init_hue);
+    assert!(cfg.albedo_init_hue > 0.0, "the default start is hued");
+    let ckpt = radiogs::train::nvs::checkpoint_path(&run);
+    let start = Checkpoint::load(&ckpt).unwrap().get_surfels(&ckpt, "params").unwrap();
+    let want = radiogs::train::albedo_chroma::hued_albedo(&start, cfg.albedo_init, cfg.albedo_init_hue);
+    radiogs::train::inverse::run(&cfg, &dataset, false).unwrap();
+    let got = radiogs::io::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
+    assert_eq!(got.len(), start.len(), "the plane is seen from one side: no twins");
+    let mut spread = 0.0f32;
+    for i in 0..got.len() {
+        let a = got.albedo(i);
+        assert!((0..3).all(|c| (a[c] - want[i][c]).abs() < 1e-4), "surfel {i}: {a:?} vs {:?}", want[i]);
+        spread = spread.max(a[0] - a[2]);
+    }
+    // The orange plane starts redder than blue (a grey start would give 0).
+    assert!(spread > 5e-3, "fresh albedo is grey: red − blue = {spread}");
+}
+
 /// `--prune-contribution`: the stage starts without the surfels that no training pixel shows
 /// at that weight (here a faint one on the plane and one outside every view); 0 keeps them.
 #[test]

@@ -111,15 +111,17 @@ impl PbrScene {
             mats.update(&surfels);
             let sample_factor = crate::train::inverse::sample_factor(&cfg);
             let bounces = crate::relight::run_bounces(run);
+            let (samples, env_importance) = crate::relight::run_sampling(run, cfg.pbr_samples);
             let cache = crate::relight::traced_cache(
                 &surfels,
                 &mats,
                 &env,
-                cfg.pbr_samples,
+                samples,
                 start,
                 cfg.seed,
                 sample_factor,
                 bounces,
+                env_importance,
             )?;
             let specular = cfg.specular;
             let filter_inv_square = cfg.filter_inv_square;

@@ -16,7 +16,8 @@
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::optim::{LearningRates, SurfelAdam};
-use crate::shade::incident::{IncidentCache, RayStart};
+use crate::shade::env_sampling::EnvSampler;
+use crate::shade::incident::{EnvImportance, IncidentCache, RayStart};
 use crate::shade::pbr::{Detach, shade_surfels};
 use crate::shade::splitsum::SplitSum;
 use crate::surfels::Surfels;
@@ -69,8 +70,31 @@ pub struct RelightArgs {
     /// start); 1 = the hit surfels lit by the unoccluded env only.
     #[arg(long, default_value_t = TRACED_BOUNCES)]
     pub bounces: usize,
+    /// Incident directions per surfel of the traced prediction [default: the run's
+    /// `pbr_samples`, 64].
+    #[arg(long)]
+    pub samples: Option<usize>,
+    /// Share of those directions drawn from the new map's bright peaks (texels above 10 × its
+    /// mean; a map without any is traced with Fibonacci directions only), the rest Fibonacci,
+    /// mixed by the balance heuristic (0 = Fibonacci only, as published;
+    /// src/shade/env_sampling.rs).
+    #[arg(long, default_value_t = ENV_IMPORTANCE)]
+    pub env_importance: f32,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+}
+
+/// Share of each surfel's traced directions drawn from the new map's peaks under relighting
+/// (`--env-importance`). 0.25 and 0.5 relight alike (0.25: cornell +0.01 / +0.07 dB, spheres
+/// +0.04 / +0.07 dB, finetune / traced; BENCHMARKS.md, session 58).
+pub const ENV_IMPORTANCE: f32 = 0.25;
+
+/// Checks `--env-importance` / `--relight-env-importance` (named `flag` in the error).
+pub fn check_env_importance(flag: &str, share: f32) -> anyhow::Result<()> {
+    if !(0.0..=0.9).contains(&share) {
+        anyhow::bail!("{flag} {share}: must be a share in [0, 0.9] (0 = Fibonacci directions only)");
+    }
+    Ok(())
 }
 
 /// Settings of the finetune.
@@ -86,6 +110,8 @@ pub struct FinetuneSettings {
     pub sample_factor: usize,
     /// Light bounces of the traced start ([`traced_cache`]).
     pub bounces: usize,
+    /// Share of the traced start's directions drawn from the map ([`traced_cache`]).
+    pub env_importance: f32,
     pub seed: u64,
 }
 
@@ -107,7 +133,8 @@ pub const TRACED_BOUNCES: usize = 4;
 /// and the indirect light is iterated over `bounces` (≥ 1; see [`TRACED_BOUNCES`]). The hit
 /// surfels' radiance is their outgoing radiance along their own normal (view-independent), and
 /// the rendering equation of each bounce samples `env` box-filtered by `sample_factor` (as the
-/// PBR render does).
+/// PBR render does). A share `env_importance` of each surfel's `samples` directions is drawn
+/// from that map's light ([`EnvImportance`]), the rest are Fibonacci.
 #[allow(clippy::too_many_arguments)]
 pub fn traced_cache(
     surfels: &Surfels,
@@ -118,9 +145,16 @@ pub fn traced_cache(
     seed: u64,
     sample_factor: usize,
     bounces: usize,
+    env_importance: f32,
 ) -> crate::Result<IncidentCache> {
     let tracer = Tracer::build(surfels, &trace_settings());
     let split = SplitSum::new(env)?;
+    let env_s = env.box_downsample(sample_factor.max(1));
+    let mut cache = IncidentCache::default();
+    let n_env = (env_importance.clamp(0.0, 1.0) * samples as f32).round() as usize;
+    if n_env > 0 {
+        cache.importance = EnvSampler::new(&env_s).map(|sampler| EnvImportance { sampler, samples: n_env });
+    }
     let n = surfels.len();
     // Bounce 1: each surfel's split-sum radiance along its normal (linear), as a traced feature.
     let mut radiance: Vec<f32> = (0..n)
@@ -130,14 +164,12 @@ pub fn traced_cache(
             [0, 1, 2].map(|c| o.diffuse[c] + o.specular[c])
         })
         .collect();
-    let mut cache = IncidentCache::default();
     if bounces <= 1 {
         // One bounce needs no hit lists (they cost 8 bytes a hit).
         cache.refresh_with(&tracer, surfels, samples, start, seed, Some(&radiance));
         return Ok(cache);
     }
     let hits = cache.refresh_recorded(&tracer, surfels, samples, start, seed, &radiance);
-    let env_s = env.box_downsample(sample_factor.max(1));
     let (mut direct, mut indirect) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
     for _ in 1..bounces {
         let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
@@ -191,6 +223,7 @@ pub fn finetune(
                 cfg.seed,
                 cfg.sample_factor,
                 cfg.bounces,
+                cfg.env_importance,
             )?;
             &traced
         }
@@ -297,6 +330,12 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     if !(1..=1 << 24).contains(&args.rc_surfels) {
         anyhow::bail!("--rc-surfels {}: must be 1..=16777216", args.rc_surfels);
     }
+    if let Some(s) = args.samples
+        && !(1..=1024).contains(&s)
+    {
+        anyhow::bail!("--samples {s}: must be 1..=1024");
+    }
+    check_env_importance("--env-importance", args.env_importance)?;
     // The relit run is a new folder (or a previous relit run): never the trained run it
     // comes from, nor another trained run, whose checkpoints would then describe other files.
     if crate::io::same_path(&args.out, run) {
@@ -321,9 +360,11 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     crate::train::interrupt::install();
     let mut mats = MaterialView::default();
     mats.update(&surfels);
+    let samples = args.samples.unwrap_or(cfg.pbr_samples);
     let mut record = serde_json::json!({
         "mode": args.mode, "envmap": args.envmap.display().to_string(), "rotate_deg": args.rotate,
         "source_run": run.display().to_string(), "bounces": args.bounces,
+        "samples": samples, "env_importance": args.env_importance,
     });
     match args.mode {
         RelightMode::Finetune => {
@@ -331,11 +372,12 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 iters: args.iters,
                 rc_surfels: args.rc_surfels,
                 rc_rays: args.rc_rays,
-                samples: cfg.pbr_samples,
+                samples,
                 start,
                 lr_sh: cfg.lr_sh,
                 sample_factor: crate::train::inverse::sample_factor(&cfg),
                 bounces: args.bounces,
+                env_importance: args.env_importance,
                 seed: args.seed,
             };
             let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true, None)?;
@@ -374,6 +416,20 @@ pub fn run_bounces(run: &Path) -> usize {
     read().filter(|&b| b >= 1).unwrap_or(TRACED_BOUNCES)
 }
 
+/// The traced prediction's directions per surfel and their share drawn from the map, as
+/// recorded in a relit run folder; a run relit before these were recorded was traced with the
+/// run's `pbr_samples`, all Fibonacci.
+pub fn run_sampling(run: &Path, pbr_samples: usize) -> (usize, f32) {
+    let v: Option<serde_json::Value> =
+        std::fs::read_to_string(run.join("relight.json")).ok().and_then(|t| serde_json::from_str(&t).ok());
+    let samples = v.as_ref().and_then(|v| v.get("samples")?.as_u64()).map(|s| s as usize);
+    let share = v.as_ref().and_then(|v| v.get("env_importance")?.as_f64()).map(|s| s as f32);
+    (
+        samples.filter(|s| (1..=1024).contains(s)).unwrap_or(pbr_samples),
+        share.filter(|s| (0.0..=0.9).contains(s)).unwrap_or(0.0),
+    )
+}
+
 /// The relight mode recorded in a run folder, if it is a relit run.
 pub fn run_mode(run: &Path) -> Option<RelightMode> {
     let text = std::fs::read_to_string(run.join("relight.json")).ok()?;
@@ -395,7 +451,12 @@ mod tests {
         let env = EnvMap::constant(32, 16, l);
         let mut mats = MaterialView::default();
         mats.update(&s);
-        let cache = traced_cache(&s, &mats, &env, 64, RayStart::offset_only(1e-3), 5, 1, TRACED_BOUNCES).unwrap();
+        // A constant map has no peaks to sample: any share gives the Fibonacci directions.
+        let traced =
+            |share| traced_cache(&s, &mats, &env, 64, RayStart::offset_only(1e-3), 5, 1, TRACED_BOUNCES, share);
+        let cache = traced(0.0).unwrap();
+        let also = traced(ENV_IMPORTANCE).unwrap();
+        assert!(also.sample_weights.is_empty() && also.dirs == cache.dirs);
         assert!(cache.visibility.iter().all(|&v| v == 1.0));
         assert!(cache.indirect.iter().all(|c| *c == [0.0; 3]));
         let shade = |a: f32| {
@@ -415,6 +476,100 @@ mod tests {
         }
     }
 
+    /// Under a map with a sun, the traced light of surfels drawing half their directions from
+    /// the map is much closer to a dense reference than with Fibonacci directions alone. The
+    /// reference: the same shading over a quadrature of the map (2 × 2 cells a texel, each
+    /// weighted by its solid angle, those under the 10° floor by 0).
+    #[test]
+    fn map_samples_find_the_sun() {
+        use std::f32::consts::PI;
+        // 16 lone surfels far apart (no occlusion), normals spread over the upper hemisphere.
+        let n = 16;
+        let mut s = Surfels::random_in_box(n, [0.0; 3], [0.0; 3], 2);
+        for i in 0..n {
+            s.means[i] = [10.0 * i as f32, 0.0, 0.0];
+            let (a, z) = (i as f32 * 2.4, 0.2 + 0.8 * (i as f32 + 0.5) / n as f32);
+            let r = (1.0 - z * z).sqrt();
+            s.quats[i] = crate::surfels::quat_with_normal([r * a.cos(), r * a.sin(), z]);
+        }
+        let mut env = EnvMap::constant(128, 64, [0.05, 0.05, 0.06]);
+        env.texels[10 * 128 + 40] = [3000.0, 2800.0, 2500.0];
+        let mut mats = MaterialView::default();
+        mats.update(&s);
+        let direct = |samples: usize, share: f32| -> Vec<f32> {
+            let cache =
+                traced_cache(&s, &mats, &env, samples, RayStart::offset_only(1e-3), 7, 1, TRACED_BOUNCES, share)
+                    .unwrap();
+            let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
+            let (mut d, mut i) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
+            shade_surfels(&inp, &env, &mut d, &mut i).unwrap();
+            d.iter().map(|c| c[0]).collect()
+        };
+        let reference: Vec<f32> = {
+            let sub = 2;
+            let (w, h) = (env.width * sub, env.height * sub);
+            let z_min = 10f32.to_radians().sin();
+            let cells: Vec<([f32; 3], f32)> = (0..h)
+                .flat_map(|y| (0..w).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    let d = env.pixel_to_dir((x as f32 + 0.5) / sub as f32, (y as f32 + 0.5) / sub as f32);
+                    let (t0, t1) = (y as f32 / h as f32 * PI, (y + 1) as f32 / h as f32 * PI);
+                    (d, 2.0 * PI / w as f32 * (t0.cos() - t1.cos()))
+                })
+                .collect();
+            let s = cells.len();
+            let mut dirs = Vec::with_capacity(n * s);
+            let mut weights = Vec::with_capacity(n * s);
+            for i in 0..n {
+                let nn = mats.normal[i];
+                for &(d, omega) in &cells {
+                    dirs.push(d);
+                    weights.push(if d[0] * nn[0] + d[1] * nn[1] + d[2] * nn[2] >= z_min { omega } else { 0.0 });
+                }
+            }
+            let (visibility, indirect) = (vec![1.0f32; n * s], vec![[0.0f32; 3]; n * s]);
+            let inp = crate::shade::pbr::PbrInputs {
+                albedo: &mats.albedo,
+                roughness: &mats.roughness,
+                normal: &mats.normal,
+                view: &mats.normal,
+                dirs: &dirs,
+                visibility: &visibility,
+                indirect: &indirect,
+                samples: s,
+                weight: 0.0,
+                sample_weights: Some(&weights),
+                specular: true,
+                lambert: true,
+                footprints: None,
+            };
+            let (mut d, mut i) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
+            shade_surfels(&inp, &env, &mut d, &mut i).unwrap();
+            d.iter().map(|c| c[0]).collect()
+        };
+        let error = |v: &[f32]| -> f32 { v.iter().zip(&reference).map(|(a, b)| (a - b).powi(2)).sum::<f32>() };
+        let (fib, mixed) = (error(&direct(64, 0.0)), error(&direct(64, 0.5)));
+        let mean_square = reference.iter().map(|r| r * r).sum::<f32>();
+        // Measured: squared error 0.84 with Fibonacci directions only, 1.4e-5 mixed, of 0.94.
+        assert!(mixed < 0.1 * fib, "squared error: mixed {mixed}, Fibonacci {fib}");
+        assert!(mixed < 0.01 * mean_square, "squared error: mixed {mixed} of {mean_square}");
+    }
+
+    /// A relit run records its traced sampling; one relit before it did reads as all Fibonacci
+    /// at the run's `pbr_samples`, and a damaged record falls back the same way.
+    #[test]
+    fn relit_runs_record_their_sampling() {
+        let dir = crate::test_dir::TempDir::new("relit-sampling");
+        assert_eq!(run_sampling(&dir, 64), (64, 0.0));
+        let write = |text: &str| std::fs::write(dir.join("relight.json"), text).unwrap();
+        write(r#"{"mode": "traced", "bounces": 4}"#);
+        assert_eq!(run_sampling(&dir, 64), (64, 0.0));
+        write(r#"{"mode": "traced", "bounces": 4, "samples": 128, "env_importance": 0.25}"#);
+        assert_eq!(run_sampling(&dir, 64), (128, 0.25));
+        write(r#"{"mode": "traced", "samples": 0, "env_importance": 3.0}"#);
+        assert_eq!(run_sampling(&dir, 32), (32, 0.0));
+    }
+
     /// Multi-bounce traced light equals tracing each bounce again with the previous bounce's
     /// radiance as the payload (an independent path through the tracer's feature compositing).
     #[test]
@@ -425,7 +580,9 @@ mod tests {
         }
         let mut mats = MaterialView::default();
         mats.update(&s);
-        let env = EnvMap::constant(32, 16, [1.2, 0.9, 0.6]);
+        let mut env = EnvMap::constant(32, 16, [1.2, 0.9, 0.6]);
+        // A peak for half the directions to be drawn from.
+        env.texels[4 * 32 + 9] = [900.0, 800.0, 700.0];
         let start = RayStart { offset: 1e-3, skip_margin: Some(0.02) };
         let (samples, seed, factor) = (8, 11, 2);
         let tracer = Tracer::build(&s, &trace_settings());
@@ -438,10 +595,14 @@ mod tests {
             .collect();
         let env_s = env.box_downsample(factor);
         let mut reference = IncidentCache::default();
+        // Half of each surfel's directions from the map: the recorded rays are the same ones.
+        reference.importance = Some(EnvImportance { sampler: EnvSampler::new(&env_s).unwrap(), samples: samples / 2 });
         let mut previous: Option<Vec<[f32; 3]>> = None;
         for bounces in 1..=3 {
             reference.refresh_with(&tracer, &s, samples, start, seed, Some(&radiance));
-            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces).unwrap();
+            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces, 0.5).unwrap();
+            assert_eq!(fast.sample_weights, reference.sample_weights);
+            assert_eq!(fast.dirs, reference.dirs);
             assert_eq!(fast.visibility, reference.visibility);
             for (k, (a, b)) in fast.indirect.iter().zip(&reference.indirect).enumerate() {
                 for c in 0..3 {

@@ -270,6 +270,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
         no_relight: true,
         relight_iters: 10,
         relight_samples: 8,
+        relight_env_importance: radiogs::relight::ENV_IMPORTANCE,
         relight_bounces: radiogs::relight::TRACED_BOUNCES,
         resolution: None,
     })
@@ -279,7 +280,12 @@ fn lambert_plane_albedo_converges_under_known_light() {
     let pbr_psnr = metrics["mean"]["pbr_psnr"].as_f64().unwrap();
     assert!(pbr_psnr > 25.0, "PBR PSNR {pbr_psnr}");
     let env_file = data.join("warm.exr");
-    EnvMap::constant(32, 16, [1.5, 1.0, 0.5]).save(&env_file).unwrap();
+    // Warm light with a warm sun, for the traced mode's map samples to find.
+    let mut warm = EnvMap::constant(32, 16, [1.5, 1.0, 0.5]);
+    for k in [2 * 32 + 10, 2 * 32 + 11, 3 * 32 + 10, 3 * 32 + 11] {
+        warm.texels[k] = [30.0, 20.0, 10.0];
+    }
+    warm.save(&env_file).unwrap();
     for (mode, name) in
         [(radiogs::relight::RelightMode::Traced, "traced"), (radiogs::relight::RelightMode::Finetune, "ft")]
     {
@@ -294,11 +300,21 @@ fn lambert_plane_albedo_converges_under_known_light() {
             rc_surfels: 64,
             rc_rays: 8,
             bounces: 2,
+            samples: Some(16),
+            env_importance: 0.25,
             seed: 0,
         })
         .unwrap();
+        let record: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("relight.json")).unwrap()).unwrap();
+        assert_eq!((record["samples"].as_u64(), record["env_importance"].as_f64()), (Some(16), Some(0.25)));
         // Warm light on an orange plane: the relit plane is redder than before.
         let scene = PbrScene::from_run(&out).unwrap().unwrap();
+        if mode == radiogs::relight::RelightMode::Traced {
+            // Traced as recorded: 16 directions a surfel, 4 of them from the sun's texels.
+            assert_eq!(scene.cache.samples, 16);
+            assert_eq!(scene.cache.sample_weights.len(), scene.cache.dirs.len());
+        }
         let cam = &dataset.test[0].camera;
         let img = scene.render(cam, [0.0; 3]);
         let centre = (16 * 32 + 16) as usize;

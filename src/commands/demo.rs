@@ -161,6 +161,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         no_relight: false,
         relight_iters: args.relight_iters,
         relight_samples: 64,
+        relight_env_importance: crate::relight::ENV_IMPORTANCE,
         relight_bounces: crate::relight::TRACED_BOUNCES,
         resolution: None,
     })?;

@@ -40,6 +40,10 @@ pub struct EvalArgs {
     /// Incident directions per surfel for the ray-traced relighting.
     #[arg(long, default_value_t = 64)]
     pub relight_samples: usize,
+    /// Share of those directions drawn from the new map's bright peaks (as `relight
+    /// --env-importance`; 0 = Fibonacci only).
+    #[arg(long, default_value_t = crate::relight::ENV_IMPORTANCE)]
+    pub relight_env_importance: f32,
     /// Light bounces of the ray-traced relighting prediction (and of the finetune's start).
     #[arg(long, default_value_t = crate::relight::TRACED_BOUNCES)]
     pub relight_bounces: usize,
@@ -465,8 +469,17 @@ fn eval_relight(
             if mode == "traced" {
                 let factor = crate::train::inverse::sample_factor(cfg);
                 let bounces = args.relight_bounces;
-                let cache =
-                    traced_cache(&surfels, &mats, &env, args.relight_samples, start, cfg.seed, factor, bounces)?;
+                let cache = traced_cache(
+                    &surfels,
+                    &mats,
+                    &env,
+                    args.relight_samples,
+                    start,
+                    cfg.seed,
+                    factor,
+                    bounces,
+                    args.relight_env_importance,
+                )?;
                 light_cache = Some(cache.clone());
                 traced_scene = Some(crate::pbr_scene::PbrScene {
                     surfels: surfels.clone(),
@@ -491,6 +504,7 @@ fn eval_relight(
                     lr_sh: cfg.lr_sh,
                     sample_factor: crate::train::inverse::sample_factor(cfg),
                     bounces: args.relight_bounces,
+                    env_importance: args.relight_env_importance,
                     seed: cfg.seed,
                 };
                 finetune(&mut surfels, &mats, &env, &cameras, &settings, true, light_cache.as_ref())?;
@@ -562,6 +576,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if !(1..=1024).contains(&args.relight_samples) {
         anyhow::bail!("--relight-samples {}: must be 1..=1024", args.relight_samples);
     }
+    crate::relight::check_env_importance("--relight-env-importance", args.relight_env_importance)?;
     if let Some(r) = args.resolution
         && !(1..=MAX_DOWNSCALE).contains(&r)
     {
@@ -748,11 +763,15 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             extra.insert("relight".into(), serde_json::to_value(relit)?);
             extra.insert("relight_protocol".into(), serde_json::json!(format!(
                 "per light with rgba_<light>.png and envmaps/<light>: albedo × the median scale; traced = per-surfel \
-                 rendering equation with {} traced directions (visibility + indirect light over {} bounces, the first \
+                 rendering equation with {} traced directions ({} of them drawn from the new map's peaks, texels \
+                 above 10 × its mean, where it has any; the rest Fibonacci; balance heuristic; visibility + indirect light over {} bounces, the first \
                  from the hit surfels' split-sum colour) under the new map; finetune = SH started at that prediction \
                  and finetuned {} iterations by radiometric consistency, rasterised; prediction clipped to \
                  [0,1], masked by the GT alpha over white, PSNR/SSIM in sRGB, averaged over test views",
-                args.relight_samples, args.relight_bounces, args.relight_iters
+                args.relight_samples,
+                (args.relight_env_importance * args.relight_samples as f32).round() as usize,
+                args.relight_bounces,
+                args.relight_iters
             )));
         }
         if let Some(m) = summary["mean"].as_object_mut() {

@@ -16,11 +16,13 @@
 //! own layers (a sphere's top saw ~3 % of its hemisphere blocked by itself, a flat floor ~8 %),
 //! which showed up as false indirect light and shadow.
 
+use super::env_sampling::{EnvSampler, mixture_directions};
 use super::pbr::{CachedFootprints, PbrInputs};
 use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 use crate::envmap::{EnvMap, PackedFootprint};
 use crate::surfels::Surfels;
 use crate::trace::{Features, HitRecord, Ray, RayOutput, Tracer, trace, trace_recorded};
+use rand::RngExt;
 use rayon::prelude::*;
 
 /// Cached incident light: N surfels × S samples, surfel-major.
@@ -29,6 +31,12 @@ pub struct IncidentCache {
     pub samples: usize,
     /// Solid angle per sample (the Fibonacci estimator weight).
     pub weight: f32,
+    /// Per-sample estimator weights (N·S) when [`importance`](Self::importance) drew part of
+    /// the directions from a map; empty when every sample weighs `weight`.
+    pub sample_weights: Vec<f32>,
+    /// Draw this many of each surfel's S directions from a known map's light (relighting), the
+    /// rest Fibonacci, mixed by the balance heuristic (`env_sampling`); `None` in training.
+    pub importance: Option<EnvImportance>,
     pub dirs: Vec<[f32; 3]>,
     pub visibility: Vec<f32>,
     /// Linear radiance.
@@ -37,6 +45,13 @@ pub struct IncidentCache {
     /// [`prepare_footprints`](Self::prepare_footprints); empty until then and after a refresh.
     pub footprints: Vec<PackedFootprint>,
     pub footprint_size: (usize, usize),
+}
+
+/// Which map the cache importance-samples, and how many of each surfel's directions.
+#[derive(Clone, Debug)]
+pub struct EnvImportance {
+    pub sampler: EnvSampler,
+    pub samples: usize,
 }
 
 /// A texel-less map of `size` (width, height): footprints only need the size.
@@ -95,8 +110,15 @@ pub fn surfel_rays(
     rays: &mut [Ray],
 ) -> f32 {
     let n = surfels.normal(i);
-    let m = surfels.means[i];
     let w = fibonacci_hemisphere(n, rotation, MIN_ELEVATION_DEG, ElevationFloor::Spread, dirs);
+    ray_fan(surfels, i, start, dirs, rays);
+    w as f32
+}
+
+/// Surfel `i`'s rays along `dirs` (origin μ + offset·n, the skip plane of `start`).
+fn ray_fan(surfels: &Surfels, i: usize, start: RayStart, dirs: &[[f32; 3]], rays: &mut [Ray]) {
+    let n = surfels.normal(i);
+    let m = surfels.means[i];
     let offset = start.offset;
     let origin = [m[0] + offset * n[0], m[1] + offset * n[1], m[2] + offset * n[2]];
     let skip_below = match start.skip_margin {
@@ -106,7 +128,6 @@ pub fn surfel_rays(
     for (r, d) in rays.iter_mut().zip(dirs.iter()) {
         *r = Ray { origin, dir: *d, skip_below };
     }
-    w as f32
 }
 
 /// Which surfels each cached ray composited and with what weight (T·α), so that the indirect
@@ -142,23 +163,73 @@ impl CachedHits {
 }
 
 /// Writes the S rays and directions of each surfel in `rows` (S = `dirs.len() / rows.len()`,
-/// rotations of refresh `seed`); returns the per-sample solid angle.
+/// rotations of refresh `seed`); returns the per-sample solid angle of the Fibonacci
+/// directions. With `importance`, part of each surfel's directions come from the map and
+/// `sample_weights` (same length as `dirs`) gets every sample's estimator weight.
+#[allow(clippy::too_many_arguments)]
 fn rows_rays(
     surfels: &Surfels,
     rows: &[u32],
     start: RayStart,
     seed: u64,
+    importance: Option<&EnvImportance>,
     dirs: &mut [[f32; 3]],
+    sample_weights: &mut [f32],
     rays: &mut [Ray],
 ) -> f32 {
     let s = dirs.len() / rows.len().max(1);
-    let weights: Vec<f32> = dirs
-        .par_chunks_mut(s)
+    let Some(imp) = importance else {
+        let weights: Vec<f32> = dirs
+            .par_chunks_mut(s)
+            .zip(rays.par_chunks_mut(s))
+            .zip(rows.par_iter())
+            .map(|((d, r), &i)| surfel_rays(surfels, i as usize, start, rotation_for(seed, i as usize), d, r))
+            .collect();
+        return weights.first().copied().unwrap_or(0.0);
+    };
+    dirs.par_chunks_mut(s)
+        .zip(sample_weights.par_chunks_mut(s))
         .zip(rays.par_chunks_mut(s))
         .zip(rows.par_iter())
-        .map(|((d, r), &i)| surfel_rays(surfels, i as usize, start, rotation_for(seed, i as usize), d, r))
-        .collect();
-    weights.first().copied().unwrap_or(0.0)
+        .for_each(|(((d, w), r), &i)| surfel_rays_importance(surfels, i as usize, start, seed, imp, d, w, r));
+    fibonacci_weight(s)
+}
+
+/// As [`surfel_rays`], with `importance.samples` of the directions drawn from its map
+/// (`env_sampling::mixture_directions`) and each sample's estimator weight in `weights`. The
+/// Fibonacci rotation and the uniform numbers come from (`seed`, `i`): the same for any order
+/// of calls.
+#[allow(clippy::too_many_arguments)]
+fn surfel_rays_importance(
+    surfels: &Surfels,
+    i: usize,
+    start: RayStart,
+    seed: u64,
+    importance: &EnvImportance,
+    dirs: &mut [[f32; 3]],
+    weights: &mut [f32],
+    rays: &mut [Ray],
+) {
+    let stream = rotation_for(seed ^ 0x5bd1_e995, i).to_bits() as u128;
+    let mut rng = rand_pcg::Pcg64Mcg::new(((seed as u128) << 64) | stream);
+    let n = surfels.normal(i);
+    let rotation = rotation_for(seed, i);
+    mixture_directions(
+        n,
+        rotation,
+        Some(&importance.sampler),
+        importance.samples,
+        || rng.random::<f64>(),
+        dirs,
+        weights,
+    );
+    ray_fan(surfels, i, start, dirs, rays);
+}
+
+/// The Fibonacci estimator weight of S directions (the cap's solid angle / S).
+fn fibonacci_weight(s: usize) -> f32 {
+    let z_min = MIN_ELEVATION_DEG.to_radians().sin();
+    (2.0 * std::f64::consts::PI * (1.0 - z_min) / s.max(1) as f64) as f32
 }
 
 impl IncidentCache {
@@ -166,6 +237,11 @@ impl IncidentCache {
     fn resize(&mut self, n: usize, samples: usize) {
         self.samples = samples;
         self.footprints.clear();
+        if self.importance.is_some() {
+            self.sample_weights.resize(n * samples, 0.0);
+        } else {
+            self.sample_weights.clear();
+        }
         self.dirs.resize(n * samples, [0.0; 3]);
         self.visibility.resize(n * samples, 0.0);
         self.indirect.resize(n * samples, [0.0; 3]);
@@ -234,7 +310,19 @@ impl IncidentCache {
             rays.resize(m * s, Ray::default());
             out.clear();
             out.resize(m * s, RayOutput::default());
-            self.weight = rows_rays(surfels, &rows, start, seed, &mut self.dirs[first * s..(first + m) * s], &mut rays);
+            let span = first * s..(first + m) * s;
+            let weights =
+                if self.sample_weights.is_empty() { &mut [][..] } else { &mut self.sample_weights[span.clone()] };
+            self.weight = rows_rays(
+                surfels,
+                &rows,
+                start,
+                seed,
+                self.importance.as_ref(),
+                &mut self.dirs[span],
+                weights,
+                &mut rays,
+            );
             trace_recorded(tracer, surfels, &rays, &mut out, &mut record);
             for (q, o) in out.iter().enumerate() {
                 self.visibility[first * s + q] = o.transmittance;
@@ -282,8 +370,10 @@ impl IncidentCache {
         let s = self.samples;
         let m = rows.len();
         let mut dirs = vec![[0.0f32; 3]; m * s];
+        let mut weights = vec![0.0f32; if self.importance.is_some() { m * s } else { 0 }];
         let mut rays = vec![Ray::default(); m * s];
-        self.weight = rows_rays(surfels, rows, start, seed, &mut dirs, &mut rays);
+        self.weight =
+            rows_rays(surfels, rows, start, seed, self.importance.as_ref(), &mut dirs, &mut weights, &mut rays);
         let mut out = vec![RayOutput::default(); m * s];
         let mut composited = vec![0.0f32; if radiance.is_some() { m * s * 3 } else { 0 }];
         match radiance {
@@ -297,6 +387,9 @@ impl IncidentCache {
             for q in 0..s {
                 let (k, o) = (i * s + q, &out[j * s + q]);
                 self.dirs[k] = dirs[j * s + q];
+                if !weights.is_empty() {
+                    self.sample_weights[k] = weights[j * s + q];
+                }
                 self.visibility[k] = o.transmittance;
                 self.indirect[k] = if radiance.is_some() {
                     let c = &composited[3 * (j * s + q)..][..3];
@@ -319,6 +412,10 @@ impl IncidentCache {
         self.dirs[i * s..(i + 1) * s].copy_from_slice(dirs);
         self.visibility[i * s..(i + 1) * s].copy_from_slice(visibility);
         self.indirect[i * s..(i + 1) * s].copy_from_slice(indirect);
+        if !self.sample_weights.is_empty() {
+            // The row's directions are Fibonacci ones now.
+            self.sample_weights[i * s..(i + 1) * s].fill(self.weight);
+        }
         if self.footprints.len() == self.dirs.len() {
             let grid = footprint_grid(self.footprint_size);
             for (f, &d) in self.footprints[i * s..(i + 1) * s].iter_mut().zip(dirs) {
@@ -360,7 +457,8 @@ impl IncidentCache {
             indirect: &self.indirect,
             samples: self.samples,
             weight: self.weight,
-            sample_weights: None,
+            sample_weights: (self.sample_weights.len() == self.dirs.len() && !self.dirs.is_empty())
+                .then_some(&self.sample_weights[..]),
             specular: true,
             lambert: true,
             footprints: (self.footprints.len() == self.dirs.len()).then_some(CachedFootprints {
@@ -371,13 +469,19 @@ impl IncidentCache {
         }
     }
 
+    /// The solid angle sample `k` stands for (its estimator weight).
+    #[inline]
+    fn solid_angle(&self, k: usize) -> f32 {
+        if self.sample_weights.is_empty() { self.weight } else { self.sample_weights[k] }
+    }
+
     /// Cosine-weighted mean visibility of surfel `i` (ambient occlusion, for pictures).
     pub fn mean_visibility(&self, i: usize, normal: [f32; 3]) -> f32 {
         let s = self.samples;
         let (mut num, mut den) = (0.0f32, 0.0f32);
         for k in i * s..(i + 1) * s {
             let d = self.dirs[k];
-            let c = (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]).max(0.0);
+            let c = (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]).max(0.0) * self.solid_angle(k);
             num += c * self.visibility[k];
             den += c;
         }
@@ -391,7 +495,7 @@ impl IncidentCache {
         let (mut num, mut den) = ([0.0f32; 3], 0.0f32);
         for k in i * s..(i + 1) * s {
             let d = self.dirs[k];
-            let c = (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]).max(0.0);
+            let c = (d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2]).max(0.0) * self.solid_angle(k);
             for ch in 0..3 {
                 num[ch] += c * self.indirect[k][ch];
             }

@@ -9,6 +9,7 @@
 
 pub mod brdf;
 pub mod brdf_lanes;
+pub mod env_sampling;
 pub mod incident;
 pub mod pbr;
 pub mod sampling;

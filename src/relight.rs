@@ -6,7 +6,10 @@
 //!   surfel's normal (DC only), so the finetune mostly adds view dependence and the
 //!   inter-reflections of the new light. The right-hand side is detached (each step fits the
 //!   SH to the rendering equation evaluated with the current SH as indirect light: a
-//!   fixed-point iteration), which spares the tracer's backward pass.
+//!   fixed-point iteration), which spares the tracer's backward pass. The residual is squared
+//!   in linear radiance, not training's sRGB L1: each step's target is a 16-ray estimate, and an
+//!   L1 fit settles on its median, which leaves out a sun the rays usually miss (BENCHMARKS.md,
+//!   session 58).
 //! - `traced`: no optimisation; per surfel, visibility and indirect light are traced under the
 //!   new map and the light is iterated over a few bounces on the same rays ([`traced_cache`]):
 //!   the hit surfels first radiate their split-sum colour seen along their normal (diffuse
@@ -256,6 +259,8 @@ pub fn finetune(
         detach: Detach { env: true, material: true, normal: true },
         detach_lhs: false,
         detach_rhs: true,
+        // The mean of the noisy targets, not their median (module note).
+        linear_l2: true,
     };
     let mut scratch = RcScratch::default();
     let mut mgrads = MaterialGrads::default();

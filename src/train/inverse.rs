@@ -517,6 +517,7 @@ fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
         detach: Detach { env: cfg.detach_env, material: cfg.detach_material, normal: cfg.detach_normal },
         detach_lhs: cfg.detach_lhs,
         detach_rhs: cfg.detach_rhs,
+        linear_l2: false,
     }
 }
 

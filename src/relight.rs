@@ -137,7 +137,7 @@ pub const TRACED_BOUNCES: usize = 4;
 /// surfels' radiance is their outgoing radiance along their own normal (view-independent), and
 /// the rendering equation of each bounce samples `env` box-filtered by `sample_factor` (as the
 /// PBR render does). A share `env_importance` of each surfel's `samples` directions is drawn
-/// from that map's light ([`EnvImportance`]), the rest are Fibonacci.
+/// from that map's peaks ([`EnvImportance`]; none if it has no peaks), the rest are Fibonacci.
 #[allow(clippy::too_many_arguments)]
 pub fn traced_cache(
     surfels: &Surfels,

@@ -26,7 +26,9 @@
 //! weighs 0 (the uniform estimator's domain). With `n_e = 0` this is the plain Fibonacci
 //! quadrature, weight Ω_cap/S.
 
-use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
+use super::sampling::{
+    ElevationFloor, MIN_ELEVATION_DEG, cap_solid_angle, fibonacci_cap_jittered, fibonacci_hemisphere,
+};
 use crate::envmap::EnvMap;
 use std::f64::consts::PI;
 
@@ -73,6 +75,14 @@ fn cell_row(r: usize, h: usize) -> CellRow {
     }
 }
 
+/// The corner luminances of cell (r, c) of a W × H map: upper-left, upper-right, lower-left,
+/// lower-right (columns wrap).
+fn cell_corners(lum: &[f64], w: usize, h: usize, r: usize, c: usize) -> [f64; 4] {
+    let cr = cell_row(r, h);
+    let c1 = (c + 1) % w;
+    [lum[cr.upper * w + c], lum[cr.upper * w + c1], lum[cr.lower * w + c], lum[cr.lower * w + c1]]
+}
+
 /// Draws t ∈ [0, 1) with density ∝ (1 − t)·a + t·b (a, b ≥ 0) from u ∈ [0, 1).
 fn sample_linear(a: f64, b: f64, u: f64) -> f64 {
     // The root of ((b − a)/2)t² + a·t = u(a + b)/2, written without cancellation.
@@ -108,18 +118,17 @@ impl EnvSampler {
         if !(peaks > MIN_PEAK_SHARE * total) {
             return None;
         }
-        // Each cell's mass: mean corner luminance × solid angle.
+        // Each cell's mean corner luminance, and its mass: that × its solid angle.
         let rows = h + 1;
+        let mut mean = vec![0.0f64; rows * w];
         let mut mass = vec![0.0f64; rows * w];
         for r in 0..rows {
             let cr = cell_row(r, h);
             let (t0, t1) = (cr.top / h as f64 * PI, (cr.top + cr.height) / h as f64 * PI);
             let omega = 2.0 * PI / w as f64 * (t0.cos() - t1.cos());
             for c in 0..w {
-                let c1 = (c + 1) % w;
-                let mean = 0.25
-                    * (lum[cr.upper * w + c] + lum[cr.upper * w + c1] + lum[cr.lower * w + c] + lum[cr.lower * w + c1]);
-                mass[r * w + c] = mean * omega;
+                mean[r * w + c] = 0.25 * cell_corners(&lum, w, h, r, c).iter().sum::<f64>();
+                mass[r * w + c] = mean[r * w + c] * omega;
             }
         }
         let sum: f64 = mass.iter().sum();
@@ -138,10 +147,8 @@ impl EnvSampler {
                 cum += m;
                 // (A row without peaks is never chosen.)
                 col_cdf.push(if row_sum > 0.0 { cum / row_sum } else { (c + 1) as f64 / w as f64 });
-                let c1 = (c + 1) % w;
-                let mean = 0.25
-                    * (lum[cr.upper * w + c] + lum[cr.upper * w + c1] + lum[cr.lower * w + c] + lum[cr.lower * w + c1]);
-                scale[r * w + c] = if mean > 0.0 { m / sum / (mean * cr.height) } else { 0.0 };
+                let f = mean[r * w + c];
+                scale[r * w + c] = if f > 0.0 { m / sum / (f * cr.height) } else { 0.0 };
             }
             col_cdf[r * (w + 1) + w] = 1.0;
             acc += row_sum;
@@ -153,14 +160,7 @@ impl EnvSampler {
 
     /// The four corner luminances of cell (r, c): upper-left, upper-right, lower-left, lower-right.
     fn corners(&self, r: usize, c: usize) -> [f64; 4] {
-        let (w, cr) = (self.width, cell_row(r, self.height));
-        let c1 = (c + 1) % w;
-        [
-            self.lum[cr.upper * w + c],
-            self.lum[cr.upper * w + c1],
-            self.lum[cr.lower * w + c],
-            self.lum[cr.lower * w + c1],
-        ]
+        cell_corners(&self.lum, self.width, self.height, r, c)
     }
 
     /// Density (per steradian) of map point (x, y) (pixel units, as [`EnvMap::dir_to_pixel`]).
@@ -241,16 +241,8 @@ pub fn mixture_directions(
         return;
     };
     let z_min = MIN_ELEVATION_DEG.to_radians().sin();
-    let omega_cap = 2.0 * PI * (1.0 - z_min);
-    let golden = PI * (3.0 - 5f64.sqrt());
-    let (t, b) = super::frame(n);
-    for (i, o) in dirs[..n_u].iter_mut().enumerate() {
-        let z = 1.0 - (1.0 - z_min) * (i as f64 + uniforms()) / n_u as f64;
-        let r = (1.0 - z * z).max(0.0).sqrt();
-        let phi = golden * i as f64 + rotation;
-        let (x, y) = (r * phi.cos(), r * phi.sin());
-        *o = [0, 1, 2].map(|c| (t[c] as f64 * x + b[c] as f64 * y + n[c] as f64 * z) as f32);
-    }
+    let omega_cap = cap_solid_angle(MIN_ELEVATION_DEG);
+    fibonacci_cap_jittered(n, rotation, MIN_ELEVATION_DEG, &mut uniforms, &mut dirs[..n_u]);
     for k in 0..n_env {
         let u = [(k as f64 + uniforms()) / n_env as f64, uniforms(), uniforms(), uniforms()];
         dirs[n_u + k] = sampler.sample(u).0;

@@ -228,8 +228,7 @@ fn surfel_rays_importance(
 
 /// The Fibonacci estimator weight of S directions (the cap's solid angle / S).
 fn fibonacci_weight(s: usize) -> f32 {
-    let z_min = MIN_ELEVATION_DEG.to_radians().sin();
-    (2.0 * std::f64::consts::PI * (1.0 - z_min) / s.max(1) as f64) as f32
+    (super::sampling::cap_solid_angle(MIN_ELEVATION_DEG) / s.max(1) as f64) as f32
 }
 
 impl IncidentCache {

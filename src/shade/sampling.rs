@@ -15,6 +15,8 @@
 //!     for S = 64 (0.8 % from the spiral, 3 % from the lift).
 //!
 //!   Both weights are returned by the function, so the caller never hard-codes 2π/S.
+//! * [`fibonacci_cap_jittered`]: the Spread spiral with each point jittered within its band,
+//!   for estimators that mix it with other samples (relighting's map samples).
 //! * [`uniform_hemisphere`] (pdf 1/2π), [`cosine_hemisphere`] (pdf cos/π).
 //! * [`ggx_vndf_sample`] / [`ggx_vndf_pdf`]: Heitz 2018 visible-normal sampling of the GGX lobe
 //!   (α = r², exact Smith G1 for the visible-normal density), reflected about the sampled
@@ -55,28 +57,60 @@ pub fn fibonacci_hemisphere(
     floor: ElevationFloor,
     out: &mut [[f32; 3]],
 ) -> f64 {
+    match floor {
+        ElevationFloor::Spread => fibonacci_cap_jittered(n, rotation, min_elevation_deg, || 0.5, out),
+        ElevationFloor::Clamp => {
+            let s = out.len();
+            let z_min = cap_z_min(min_elevation_deg);
+            spiral(n, rotation, out, |fi| (1.0 - 2.0 * fi / (2.0 * s as f64 - 1.0)).max(z_min));
+            if s == 0 { 0.0 } else { 2.0 * PI / s as f64 }
+        }
+    }
+}
+
+/// The [`ElevationFloor::Spread`] spiral with each point's cos-elevation placed by `jitter` within
+/// its band of equal solid angle: z_i = 1 − (1 − z_min)(i + ξ_i)/S (ξ_i = 0.5: the plain spiral).
+/// With ξ_i uniform in [0, 1) the points together have density S/Ω_cap everywhere on the cap,
+/// which an estimator mixing them with other samples needs (`env_sampling`).
+pub fn fibonacci_cap_jittered(
+    n: [f32; 3],
+    rotation: f64,
+    min_elevation_deg: f64,
+    mut jitter: impl FnMut() -> f64,
+    out: &mut [[f32; 3]],
+) -> f64 {
     let s = out.len();
     if s == 0 {
         return 0.0;
     }
-    let z_min = (min_elevation_deg.clamp(0.0, 89.0)).to_radians().sin();
+    let z_min = cap_z_min(min_elevation_deg);
+    spiral(n, rotation, out, |fi| 1.0 - (1.0 - z_min) * (fi + jitter()) / s as f64);
+    cap_solid_angle(min_elevation_deg) / s as f64
+}
+
+/// cos of the angle from the normal at the elevation floor.
+fn cap_z_min(min_elevation_deg: f64) -> f64 {
+    (min_elevation_deg.clamp(0.0, 89.0)).to_radians().sin()
+}
+
+/// Solid angle of the cap above the elevation floor, 2π(1 − sin floor).
+pub fn cap_solid_angle(min_elevation_deg: f64) -> f64 {
+    2.0 * PI * (1.0 - cap_z_min(min_elevation_deg))
+}
+
+/// The golden-angle spiral about n: point i at cos-elevation `z_of(i)`, azimuth
+/// i·π(3 − √5) + rotation.
+fn spiral(n: [f32; 3], rotation: f64, out: &mut [[f32; 3]], mut z_of: impl FnMut(f64) -> f64) {
     let golden = PI * (3.0 - 5f64.sqrt());
     let (t, b) = frame(n);
     let (t, b, nn) = (to64(t), to64(b), to64(n));
     for (i, o) in out.iter_mut().enumerate() {
         let fi = i as f64;
-        let z = match floor {
-            ElevationFloor::Spread => 1.0 - (1.0 - z_min) * (fi + 0.5) / s as f64,
-            ElevationFloor::Clamp => (1.0 - 2.0 * fi / (2.0 * s as f64 - 1.0)).max(z_min),
-        };
+        let z = z_of(fi);
         let rad = (1.0 - z * z).max(0.0).sqrt();
         let phi = golden * fi + rotation;
         let l = [rad * phi.cos(), rad * phi.sin(), z];
         *o = to32(add(add(scale(t, l[0]), scale(b, l[1])), scale(nn, l[2])));
-    }
-    match floor {
-        ElevationFloor::Spread => 2.0 * PI * (1.0 - z_min) / s as f64,
-        ElevationFloor::Clamp => 2.0 * PI / s as f64,
     }
 }
 

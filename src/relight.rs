@@ -67,7 +67,7 @@ pub struct RelightArgs {
     #[arg(long, default_value_t = 2048)]
     pub rc_surfels: usize,
     /// Traced rays per consistency surfel.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = RC_RAYS)]
     pub rc_rays: usize,
     /// Light bounces of the traced prediction (the traced mode's light and the finetune's
     /// start); 1 = the hit surfels lit by the unoccluded env only.
@@ -86,6 +86,9 @@ pub struct RelightArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 }
+
+/// Traced rays per consistency surfel in each finetune iteration (`--rc-rays`).
+pub const RC_RAYS: usize = 16;
 
 /// Share of each surfel's traced directions drawn from the new map's peaks under relighting
 /// (`--env-importance`). 0.25 and 0.5 relight alike (0.25: cornell +0.01 / +0.07 dB, spheres

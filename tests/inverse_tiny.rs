@@ -269,6 +269,7 @@ fn lambert_plane_albedo_converges_under_known_light() {
         limit: 0,
         no_relight: true,
         relight_iters: 10,
+        relight_rc_rays: radiogs::relight::RC_RAYS,
         relight_samples: 8,
         relight_env_importance: radiogs::relight::ENV_IMPORTANCE,
         relight_bounces: radiogs::relight::TRACED_BOUNCES,

@@ -282,6 +282,7 @@ fn downscaled_run_trains_and_evaluates_at_its_factor() {
             limit: 0,
             no_relight: true,
             relight_iters: 0,
+            relight_rc_rays: radiogs::relight::RC_RAYS,
             relight_samples: 1,
             relight_env_importance: 0.0,
             relight_bounces: 1,

@@ -160,6 +160,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         limit: 0,
         no_relight: false,
         relight_iters: args.relight_iters,
+        relight_rc_rays: crate::relight::RC_RAYS,
         relight_samples: 64,
         relight_env_importance: crate::relight::ENV_IMPORTANCE,
         relight_bounces: crate::relight::TRACED_BOUNCES,

@@ -37,6 +37,9 @@ pub struct EvalArgs {
     /// Finetune iterations per light for the relighting evaluation.
     #[arg(long, default_value_t = 300)]
     pub relight_iters: u32,
+    /// Traced rays per consistency surfel in each finetune iteration (as `relight --rc-rays`).
+    #[arg(long, default_value_t = crate::relight::RC_RAYS)]
+    pub relight_rc_rays: usize,
     /// Incident directions per surfel for the ray-traced relighting.
     #[arg(long, default_value_t = 64)]
     pub relight_samples: usize,
@@ -498,7 +501,7 @@ fn eval_relight(
                 let settings = FinetuneSettings {
                     iters: args.relight_iters,
                     rc_surfels: 2048,
-                    rc_rays: 16,
+                    rc_rays: args.relight_rc_rays,
                     samples: args.relight_samples,
                     start,
                     lr_sh: cfg.lr_sh,
@@ -575,6 +578,9 @@ fn eval_relight(
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     if !(1..=1024).contains(&args.relight_samples) {
         anyhow::bail!("--relight-samples {}: must be 1..=1024", args.relight_samples);
+    }
+    if !(1..=256).contains(&args.relight_rc_rays) {
+        anyhow::bail!("--relight-rc-rays {}: must be 1..=256", args.relight_rc_rays);
     }
     crate::relight::check_env_importance("--relight-env-importance", args.relight_env_importance)?;
     if let Some(r) = args.resolution

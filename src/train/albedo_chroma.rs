@@ -18,29 +18,22 @@
 //! albedo, so it leans slightly towards a darker albedo under a brighter light; the same prior
 //! on ln a (scale-free) measured worse on cornell (BENCHMARKS.md, session 33).
 
+use super::binned_albedo::{BinnedMean, MIN_OPACITY, Neighbourhoods, OUT, surfel_weight};
 use crate::io::image::srgb_to_linear;
 use crate::sh::SH_C0;
 use crate::surfels::{ALBEDO_HI, ALBEDO_LO, Surfels};
 use rayon::prelude::*;
 
-/// Surfels below this opacity carry colours nothing constrains (BENCHMARKS.md session 29).
-const MIN_OPACITY: f32 = 0.3;
 /// Below this linear brightness (sum of channels) the chromaticity is noise.
 const MIN_BRIGHTNESS: f32 = 0.03;
 
 /// Buffers of the prior, kept between iterations.
 #[derive(Default)]
 pub struct AlbedoChroma {
-    /// Per surfel: its cell, or u32::MAX when it does not take part.
+    /// Per surfel: its cell, or [`OUT`] when it does not take part.
     cell: Vec<u32>,
     weight: Vec<f32>,
-    /// Per cell: Σ w·a (3) and Σ w, then the same summed over the 3 × 3 neighbourhood.
-    sums: Vec<[f64; 4]>,
-    neighbourhood: Vec<[f64; 4]>,
-    /// Per cell: Σ w_i·sign(a_i − ā) / W over its surfels, per channel (for ā's gradient).
-    pull: Vec<[f64; 3]>,
-    /// `pull` summed over each cell's 3 × 3 neighbourhood.
-    pull_around: Vec<[f64; 3]>,
+    core: BinnedMean,
 }
 
 impl AlbedoChroma {
@@ -53,93 +46,46 @@ impl AlbedoChroma {
         bin: f32,
         v_albedo: &mut [[f32; 3]],
     ) -> f32 {
-        let n = surfels.len();
         let cells = (1.0 / bin).ceil() as usize + 1;
-        self.sums.clear();
-        self.sums.resize(cells * cells, [0.0; 4]);
-        // Each surfel's cell and weight (parallel: three sRGB decodes a surfel), then the sums.
-        (0..n)
+        // Each surfel's cell and weight (parallel: three sRGB decodes a surfel).
+        (0..surfels.len())
             .into_par_iter()
             .map(|i| {
-                let Some(chi) = observed_chromaticity(surfels, i) else { return (u32::MAX, 0.0) };
+                let Some(chi) = observed_chromaticity(surfels, i) else { return (OUT, 0.0) };
                 let (x, y) = ((chi[0] / bin) as usize, (chi[1] / bin) as usize);
                 ((x.min(cells - 1) * cells + y.min(cells - 1)) as u32, surfel_weight(surfels, i))
             })
             .unzip_into_vecs(&mut self.cell, &mut self.weight);
-        let mut total_weight = 0.0f64;
-        for i in 0..n {
-            let (k, w) = (self.cell[i], self.weight[i]);
-            if k == u32::MAX {
-                continue;
-            }
-            let cell = &mut self.sums[k as usize];
-            for ch in 0..3 {
-                cell[ch] += (w * albedo[i][ch]) as f64;
-            }
-            cell[3] += w as f64;
-            total_weight += w as f64;
-        }
-        if total_weight <= 0.0 {
-            return 0.0;
-        }
-        // Box-filter the cells so that neighbours across a cell border share a target.
-        box_filter(&self.sums, cells, &mut self.neighbourhood);
-        let scale = lambda as f64 / total_weight;
-        let mut loss = 0.0f64;
-        self.pull.clear();
-        self.pull.resize(cells * cells, [0.0; 3]);
-        for i in 0..n {
-            let k = self.cell[i];
-            if k == u32::MAX {
-                continue;
-            }
-            let nb = &self.neighbourhood[k as usize];
-            let w = self.weight[i] as f64;
-            for ch in 0..3 {
-                let d = albedo[i][ch] as f64 - nb[ch] / nb[3];
-                loss += w * d.abs();
-                let sign = if d > 0.0 {
-                    1.0
-                } else if d < 0.0 {
-                    -1.0
-                } else {
-                    0.0
-                };
-                v_albedo[i][ch] += (scale * w * sign) as f32;
-                self.pull[k as usize][ch] += w * sign / nb[3];
-            }
-        }
-        // Through the targets: ā of cell k moves with every a_j in k's neighbourhood by w_j / W_k,
-        // so surfel j receives −w_j Σ over the cells k around its own of pull_k.
-        box_filter(&self.pull, cells, &mut self.pull_around);
-        for i in 0..n {
-            let k = self.cell[i];
-            if k == u32::MAX {
-                continue;
-            }
-            let (w, around) = (self.weight[i] as f64, &self.pull_around[k as usize]);
-            for ch in 0..3 {
-                v_albedo[i][ch] -= (scale * w * around[ch]) as f32;
-            }
-        }
-        (scale * loss) as f32
+        self.core.loss(&self.cell, &self.weight, &ChromaGrid { cells }, albedo, lambda, f32::INFINITY, v_albedo)
     }
 }
 
-/// Each cell of a `cells` × `cells` grid summed with its 8 neighbours (fewer at the border).
-fn box_filter<const N: usize>(grid: &[[f64; N]], cells: usize, out: &mut Vec<[f64; N]>) {
-    out.clear();
-    for x in 0..cells {
-        for y in 0..cells {
-            let mut acc = [0.0f64; N];
-            for nx in x.saturating_sub(1)..(x + 2).min(cells) {
-                for ny in y.saturating_sub(1)..(y + 2).min(cells) {
-                    for (a, v) in acc.iter_mut().zip(&grid[nx * cells + ny]) {
-                        *a += v;
+/// A `cells` × `cells` grid on the (r, g) chromaticity plane; a cell's neighbourhood is itself
+/// and the 8 around it (fewer at the border), so neighbours across a cell border share a target.
+struct ChromaGrid {
+    cells: usize,
+}
+
+impl Neighbourhoods for ChromaGrid {
+    fn bins(&self) -> usize {
+        self.cells * self.cells
+    }
+
+    fn gather<const N: usize>(&self, grid: &[[f64; N]], out: &mut Vec<[f64; N]>) {
+        let cells = self.cells;
+        out.clear();
+        for x in 0..cells {
+            for y in 0..cells {
+                let mut acc = [0.0f64; N];
+                for nx in x.saturating_sub(1)..(x + 2).min(cells) {
+                    for ny in y.saturating_sub(1)..(y + 2).min(cells) {
+                        for (a, v) in acc.iter_mut().zip(&grid[nx * cells + ny]) {
+                            *a += v;
+                        }
                     }
                 }
+                out.push(acc);
             }
-            out.push(acc);
         }
     }
 }
@@ -150,12 +96,6 @@ fn observed_chromaticity(surfels: &Surfels, i: usize) -> Option<[f32; 3]> {
     let c = surfels.sh[i][0].map(|x| srgb_to_linear((x * SH_C0 + 0.5).clamp(0.0, 1.0)));
     let sum = c[0] + c[1] + c[2];
     (surfels.opacity(i) >= MIN_OPACITY && sum >= MIN_BRIGHTNESS).then(|| c.map(|x| x / sum))
-}
-
-/// A surfel's share of what is seen: opacity × disk area.
-fn surfel_weight(surfels: &Surfels, i: usize) -> f32 {
-    let s = surfels.scale(i);
-    surfels.opacity(i) * s[0] * s[1]
 }
 
 /// A fresh albedo per surfel that starts with the hue it was seen with (`albedo_init_hue`).
@@ -237,6 +177,7 @@ fn light_chromaticity(surfels: &Surfels, chroma: &[Option<[f32; 3]>]) -> [f32; 3
 
 #[cfg(test)]
 mod tests {
+    use super::super::binned_albedo::{check_gradient, random_surfels};
     use super::*;
     use crate::sh::rgb_to_dc;
     use rand::{RngExt, SeedableRng};
@@ -244,54 +185,24 @@ mod tests {
     /// Surfels in two colour families (a reddish one spread over several cells, a white one)
     /// with random opacities, scales and albedos.
     fn scene(seed: u64) -> (Surfels, Vec<[f32; 3]>) {
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
-        let mut s = Surfels::random_in_box(24, [0.0; 3], [1.0; 3], seed);
-        let mut albedo = Vec::new();
+        let (mut s, albedo) = random_surfels(24, seed);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed + 100);
         for i in 0..s.len() {
             let base = if i % 2 == 0 { [0.8, 0.3, 0.3] } else { [0.7, 0.7, 0.7] };
             let c = base.map(|x: f32| x + rng.random_range(-0.05..0.05));
             s.sh[i][0] = c.map(rgb_to_dc);
-            s.opacity_logits[i] = rng.random_range(-0.5..3.0);
-            s.log_scales[i] = [rng.random_range(-3.0..-1.0), rng.random_range(-3.0..-1.0)];
-            albedo.push([0; 3].map(|_| rng.random_range(0.2..0.8)));
         }
         (s, albedo)
     }
 
     #[test]
     fn gradient_matches_finite_differences() {
-        // f64 central differences of the f32 loss; components within eps of a kink of |·|
-        // (the one-sided slopes disagree) are skipped, and there must be few of them.
         let (mut checked, mut kinks) = (0, 0);
         for seed in 0..4 {
             let (s, albedo) = scene(seed);
             let mut prior = AlbedoChroma::default();
-            let mut grad = vec![[0.0f32; 3]; s.len()];
-            prior.loss(&s, &albedo, 0.7, 0.02, &mut grad);
-            let eps = 1e-3;
-            for i in 0..s.len() {
-                for ch in 0..3 {
-                    let f = |delta: f32| {
-                        let mut a = albedo.clone();
-                        a[i][ch] += delta;
-                        let mut g = vec![[0.0f32; 3]; s.len()];
-                        AlbedoChroma::default().loss(&s, &a, 0.7, 0.02, &mut g) as f64
-                    };
-                    let (lo, mid, hi) = (f(-eps), f(0.0), f(eps));
-                    let (left, right) = ((mid - lo) / eps as f64, (hi - mid) / eps as f64);
-                    if (left - right).abs() > 1e-3 {
-                        kinks += 1;
-                        continue;
-                    }
-                    checked += 1;
-                    let fd = (hi - lo) / (2.0 * eps as f64);
-                    let an = grad[i][ch] as f64;
-                    assert!(
-                        (fd - an).abs() < 5e-4 + 1e-2 * an.abs(),
-                        "seed {seed} surfel {i} ch {ch}: fd {fd} analytic {an}"
-                    );
-                }
-            }
+            let (c, k) = check_gradient(&albedo, |a, g| prior.loss(&s, a, 0.7, 0.02, g));
+            (checked, kinks) = (checked + c, kinks + k);
         }
         assert!(kinks * 10 < checked, "{kinks} kinks against {checked} checked");
     }

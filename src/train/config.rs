@@ -295,6 +295,23 @@ pub struct TrainConfig {
     /// averages its cell and the 8 around it.
     #[arg(long, default_value_t = 0.015)]
     pub albedo_chroma_bin: f32,
+    /// Local albedo prior in space [0 = off; not in the published method]: surfels within a
+    /// voxel of each other are pulled towards one albedo, whichever way they face, so the two
+    /// faces of a thin part share it (src/train/albedo_voxel.rs). A run whose config predates
+    /// the setting loads as 0.
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub lambda_albedo_voxel: f32,
+    /// Voxel size of that prior, as a fraction of the scene extent [0.012: 4 cm on cornell's
+    /// 3.4 m]; a surfel's target averages its voxel and the 26 around it.
+    #[arg(long, default_value_t = 0.012)]
+    #[serde(default = "albedo_voxel_default")]
+    pub albedo_voxel: f32,
+    /// Per-channel cap on that prior's difference from the local mean [1: none, the albedo
+    /// range is narrower]: larger differences (edges between materials) go free.
+    #[arg(long, default_value_t = 1.0)]
+    #[serde(default = "albedo_voxel_cap_default")]
+    pub albedo_voxel_cap: f32,
     /// Treat the ground truth's saturated channels (stored 255: clipped at 1 by the dataset's
     /// view transform) as lower bounds in the PBR image loss [true]: a brighter rendering there
     /// is not an error (src/train/pbr_image.rs; BENCHMARKS.md session 36). A run whose config
@@ -407,6 +424,14 @@ pub struct TrainConfig {
     /// Log metrics every this many iterations.
     #[arg(long, default_value_t = 50)]
     pub log_every: u32,
+}
+
+fn albedo_voxel_default() -> f32 {
+    0.012
+}
+
+fn albedo_voxel_cap_default() -> f32 {
+    1.0
 }
 
 /// What every run before `lambda_albedo_chroma` used: no such prior.
@@ -591,6 +616,7 @@ impl TrainConfig {
             ("lambda_smooth_roughness", self.lambda_smooth_roughness),
             ("lambda_smooth_normal", self.lambda_smooth_normal),
             ("lambda_albedo_chroma", self.lambda_albedo_chroma),
+            ("lambda_albedo_voxel", self.lambda_albedo_voxel),
             ("lambda_white_light", self.lambda_white_light),
             ("lambda_env_tv", self.lambda_env_tv),
             ("geometry_lr_scale", self.geometry_lr_scale),
@@ -603,6 +629,15 @@ impl TrainConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(key, format!("{v} must be finite and ≥ 0"));
             }
+        }
+        if !(self.albedo_voxel.is_finite() && self.albedo_voxel >= 1e-4 && self.albedo_voxel <= 0.5) {
+            return bad(
+                "albedo_voxel",
+                format!("{} is not in [0.0001, 0.5] (a fraction of the scene extent)", self.albedo_voxel),
+            );
+        }
+        if !(self.albedo_voxel_cap.is_finite() && self.albedo_voxel_cap > 0.0) {
+            return bad("albedo_voxel_cap", format!("{} must be finite and > 0", self.albedo_voxel_cap));
         }
         if !(0.0..1.0).contains(&self.prune_contribution) {
             return bad("prune_contribution", format!("{} is not in [0, 1)", self.prune_contribution));

@@ -10,7 +10,8 @@
 //!    the SH colour;
 //! 2. losses: PBR image (linear → sRGB, L1 + 0.2·D-SSIM), SH image (0.8·L1 + 0.2·D-SSIM),
 //!    mask, normal consistency, edge-aware smoothness of albedo/roughness/normal, the
-//!    non-local albedo prior on the SH colour's chromaticity (albedo_chroma.rs; not published);
+//!    non-local albedo prior on the SH colour's chromaticity (albedo_chroma.rs; not published)
+//!    and optionally a local one in space (albedo_voxel.rs; not published);
 //! 3. radiometric consistency on B random surfels × R traced rays with gradients through the
 //!    tracer (consistency.rs); the traced rows overwrite the cache when R = S;
 //! 4. env priors (white light, TV), Adam on surfels (geometry lr × 0.01) and env (log radiance);
@@ -459,6 +460,7 @@ pub struct InverseLosses {
     pub normal: f32,
     pub smooth: f32,
     pub albedo_chroma: f32,
+    pub albedo_voxel: f32,
     pub env_prior: f32,
     pub rc: RcLosses,
     pub psnr_pbr: f32,
@@ -504,6 +506,7 @@ struct Scratch {
     /// The traced specular lobe's env gradient (full resolution; empty without it).
     v_env_traced: Vec<[f32; 3]>,
     albedo_chroma: AlbedoChroma,
+    albedo_voxel: super::albedo_voxel::AlbedoVoxel,
     /// The forward's per-pixel hits, replayed by the backward (buffers reused).
     recorder: raster::HitRecorder,
 }
@@ -747,6 +750,18 @@ fn iterate(
             &mut sc.mgrads.v_albedo,
         );
         l.total += l.albedo_chroma;
+    }
+    if cfg.lambda_albedo_voxel > 0.0 {
+        let voxel = cfg.albedo_voxel * state.extent;
+        l.albedo_voxel = sc.albedo_voxel.loss(
+            s,
+            &sc.mats.albedo,
+            cfg.lambda_albedo_voxel,
+            voxel,
+            cfg.albedo_voxel_cap,
+            &mut sc.mgrads.v_albedo,
+        );
+        l.total += l.albedo_voxel;
     }
     // The env gradient of the (box-filtered) sampled env, kept small until the end.
     sc.v_env_small.clear();
@@ -1036,7 +1051,7 @@ pub fn run_until(
             let line = serde_json::json!({
                 "stage": "inverse", "iteration": it, "loss": last.total, "psnr_pbr": last.psnr_pbr,
                 "psnr_sh": last.psnr_sh, "pbr_l1": last.pbr_l1, "sh_l1": last.sh_l1, "rc_camera": last.rc.camera,
-                "rc_random": last.rc.random, "mask": last.mask, "normal": last.normal, "smooth": last.smooth, "albedo_chroma": last.albedo_chroma,
+                "rc_random": last.rc.random, "mask": last.mask, "normal": last.normal, "smooth": last.smooth, "albedo_chroma": last.albedo_chroma, "albedo_voxel": last.albedo_voxel,
                 "env_prior": last.env_prior, "seconds": started.elapsed().as_secs_f64(),
             });
             writeln!(metrics, "{line}").context("writing metrics_inverse.jsonl")?;

@@ -1,5 +1,7 @@
 //! Training: configuration, stages, density control, checkpoints.
 pub mod albedo_chroma;
+pub mod albedo_voxel;
+pub mod binned_albedo;
 pub mod checkpoint;
 pub mod config;
 pub mod consistency;

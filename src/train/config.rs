@@ -295,21 +295,22 @@ pub struct TrainConfig {
     /// averages its cell and the 8 around it.
     #[arg(long, default_value_t = 0.015)]
     pub albedo_chroma_bin: f32,
-    /// Local albedo prior in space [0 = off; not in the published method]: surfels within a
-    /// voxel of each other are pulled towards one albedo, whichever way they face, so the two
-    /// faces of a thin part share it (src/train/albedo_voxel.rs). A run whose config predates
-    /// the setting loads as 0.
-    #[arg(long, default_value_t = 0.0)]
-    #[serde(default)]
+    /// Local albedo prior in space [0.1; not in the published method, 0 = off]: surfels within
+    /// a voxel of each other are pulled towards one albedo, whichever way they face, so the two
+    /// faces of a thin part share it (src/train/albedo_voxel.rs; cornell: relighting +0.7–0.9
+    /// dB, albedo +1.0 dB; spheres +0.15 dB, albedo −0.16 dB; BENCHMARKS.md session 59). A run
+    /// whose config predates the setting loads as 0.
+    #[arg(long, default_value_t = 0.1)]
+    #[serde(default = "albedo_voxel_off")]
     pub lambda_albedo_voxel: f32,
-    /// Voxel size of that prior, as a fraction of the scene extent [0.012: 4 cm on cornell's
+    /// Voxel size of that prior, as a fraction of the scene extent [0.024: 8 cm on cornell's
     /// 3.4 m]; a surfel's target averages its voxel and the 26 around it.
-    #[arg(long, default_value_t = 0.012)]
+    #[arg(long, default_value_t = 0.024)]
     #[serde(default = "albedo_voxel_default")]
     pub albedo_voxel: f32,
-    /// Per-channel cap on that prior's difference from the local mean [1: none, the albedo
-    /// range is narrower]: larger differences (edges between materials) go free.
-    #[arg(long, default_value_t = 1.0)]
+    /// Per-channel cap on that prior's difference from the local mean [0.1]: larger
+    /// differences (edges between materials, a checkerboard's squares) go free.
+    #[arg(long, default_value_t = 0.1)]
     #[serde(default = "albedo_voxel_cap_default")]
     pub albedo_voxel_cap: f32,
     /// Treat the ground truth's saturated channels (stored 255: clipped at 1 by the dataset's
@@ -426,12 +427,17 @@ pub struct TrainConfig {
     pub log_every: u32,
 }
 
+/// What every run before `lambda_albedo_voxel` used: no such prior.
+fn albedo_voxel_off() -> f32 {
+    0.0
+}
+
 fn albedo_voxel_default() -> f32 {
-    0.012
+    0.024
 }
 
 fn albedo_voxel_cap_default() -> f32 {
-    1.0
+    0.1
 }
 
 /// What every run before `lambda_albedo_chroma` used: no such prior.
@@ -503,7 +509,8 @@ impl TrainConfig {
     ///
     /// A key the file leaves out takes the built-in default, including the settings whose
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
-    /// `opacity_reset_cap`, `lambda_albedo_chroma`, `clip_saturated`, `albedo_init_hue`): those
+    /// `opacity_reset_cap`, `lambda_albedo_chroma`, `lambda_albedo_voxel`, `clip_saturated`,
+    /// `albedo_init_hue`): those
     /// older values are for reading a run folder saved before the setting existed
     /// (`eval::load_run_config`), not for a hand-written settings file.
     ///
@@ -852,6 +859,8 @@ mod tests {
         assert_ne!(d.opacity_reset_cap, opacity_reset_cap_2dgs());
         assert_eq!(merged.lambda_albedo_chroma, d.lambda_albedo_chroma);
         assert_ne!(d.lambda_albedo_chroma, albedo_chroma_off());
+        assert_eq!(merged.lambda_albedo_voxel, d.lambda_albedo_voxel);
+        assert_ne!(d.lambda_albedo_voxel, albedo_voxel_off());
         assert_eq!((merged.albedo_init_hue, d.albedo_init_hue), (1.0, 1.0));
         assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
@@ -874,6 +883,7 @@ mod tests {
         assert_eq!(saved.filter_inv_square, crate::raster::filter_inv_square_2dgs());
         assert_eq!(saved.opacity_reset_cap, opacity_reset_cap_2dgs());
         assert_eq!(saved.lambda_albedo_chroma, albedo_chroma_off());
+        assert_eq!(saved.lambda_albedo_voxel, albedo_voxel_off());
         assert_eq!(saved.albedo_init_hue, 0.0, "the grey start runs before the setting had");
 
         std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")

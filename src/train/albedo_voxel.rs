@@ -8,11 +8,16 @@
 //! 1.11 1.49; BENCHMARKS.md sessions 33, 59). Tying surfels within a few centimetres ties the
 //! two faces of a 5 cm wall, and everywhere else pulls the albedo towards its local mean, which
 //! the edge-aware image smoothness does only within each view. Not in the published method
-//! (`--lambda-albedo-voxel`, 0 = off; BENCHMARKS.md session 59).
+//! (`--lambda-albedo-voxel`, default 0.1, 0 = off): cornell relights 0.7–0.9 dB better and its
+//! albedo gains 0.9–1.0 dB on three runs; spheres relights 0.12–0.16 dB better and loses
+//! 0.16–0.19 dB of albedo; the PBR fit −0.3 to −0.9 dB (BENCHMARKS.md session 59).
 //!
-//! Surfels with opacity ≥ 0.3 are binned into cubic voxels `voxel` wide (scene units); a
-//! surfel's target is the mean albedo over its voxel and the 26 around it (the core, with the
-//! loss and its gradient: `binned_albedo.rs`).
+//! Surfels with opacity ≥ 0.3 are binned into cubic voxels `voxel` wide (scene units; the
+//! inverse stage passes `--albedo-voxel` 0.024 × the camera extent: 8 cm on cornell); a
+//! surfel's target is the mean albedo over its voxel and the 26 around it, and each channel's
+//! difference beyond `cap` (`--albedo-voxel-cap` 0.1) goes free, so edges between materials
+//! survive: uncapped, spheres' checkerboard lost 0.65 dB of albedo. The loss and its gradient
+//! are the shared core in `binned_albedo.rs`.
 
 use super::binned_albedo::{BinnedMean, MIN_OPACITY, Neighbourhoods, OUT, surfel_weight};
 use crate::surfels::Surfels;

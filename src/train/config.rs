@@ -297,9 +297,10 @@ pub struct TrainConfig {
     pub albedo_chroma_bin: f32,
     /// Local albedo prior in space [0.1; not in the published method, 0 = off]: surfels within
     /// a voxel of each other are pulled towards one albedo, whichever way they face, so the two
-    /// faces of a thin part share it (src/train/albedo_voxel.rs; cornell: relighting +0.7–0.9
-    /// dB, albedo +1.0 dB; spheres +0.15 dB, albedo −0.16 dB; BENCHMARKS.md session 59). A run
-    /// whose config predates the setting loads as 0.
+    /// faces of a thin part share it (src/train/albedo_voxel.rs; three runs each: cornell
+    /// relighting +0.7–0.9 dB, albedo +0.9–1.0 dB; spheres relighting +0.12–0.16 dB, albedo
+    /// −0.16 to −0.19 dB; BENCHMARKS.md session 59). A run whose config predates the setting
+    /// loads as 0.
     #[arg(long, default_value_t = 0.1)]
     #[serde(default = "albedo_voxel_off")]
     pub lambda_albedo_voxel: f32,
@@ -510,9 +511,8 @@ impl TrainConfig {
     /// A key the file leaves out takes the built-in default, including the settings whose
     /// serde default is the older value (`filter_inv_square`, `scale_position_lr`,
     /// `opacity_reset_cap`, `lambda_albedo_chroma`, `lambda_albedo_voxel`, `clip_saturated`,
-    /// `albedo_init_hue`): those
-    /// older values are for reading a run folder saved before the setting existed
-    /// (`eval::load_run_config`), not for a hand-written settings file.
+    /// `albedo_init_hue`): those older values are for reading a run folder saved before the
+    /// setting existed (`eval::load_run_config`), not for a hand-written settings file.
     ///
     /// `--resume` without `--config` reads the run's own `RUN/config.toml` in the file's place,
     /// as a run folder (keys it predates take the values it was trained with), so a resumed run

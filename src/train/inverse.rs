@@ -11,7 +11,7 @@
 //! 2. losses: PBR image (linear → sRGB, L1 + 0.2·D-SSIM), SH image (0.8·L1 + 0.2·D-SSIM),
 //!    mask, normal consistency, edge-aware smoothness of albedo/roughness/normal, the
 //!    non-local albedo prior on the SH colour's chromaticity (albedo_chroma.rs; not published)
-//!    and optionally a local one in space (albedo_voxel.rs; not published);
+//!    and a local one in space (albedo_voxel.rs; not published);
 //! 3. radiometric consistency on B random surfels × R traced rays with gradients through the
 //!    tracer (consistency.rs); the traced rows overwrite the cache when R = S;
 //! 4. env priors (white light, TV), Adam on surfels (geometry lr × 0.01) and env (log radiance);

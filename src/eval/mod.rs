@@ -772,12 +772,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
                  rendering equation with {} traced directions ({} of them drawn from the new map's peaks, texels \
                  above 10 × its mean, where it has any; the rest Fibonacci; balance heuristic; visibility + indirect light over {} bounces, the first \
                  from the hit surfels' split-sum colour) under the new map; finetune = SH started at that prediction \
-                 and finetuned {} iterations by radiometric consistency, rasterised; prediction clipped to \
-                 [0,1], masked by the GT alpha over white, PSNR/SSIM in sRGB, averaged over test views",
+                 and finetuned {} iterations by radiometric consistency (2048 surfels × {} traced rays a step), \
+                 rasterised; prediction clipped to [0,1], masked by the GT alpha over white, PSNR/SSIM in sRGB, \
+                 averaged over test views",
                 args.relight_samples,
                 (args.relight_env_importance * args.relight_samples as f32).round() as usize,
                 args.relight_bounces,
-                args.relight_iters
+                args.relight_iters,
+                args.relight_rc_rays
             )));
         }
         if let Some(m) = summary["mean"].as_object_mut() {

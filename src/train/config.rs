@@ -245,7 +245,7 @@ pub struct TrainConfig {
     // Inverse rendering (RadioGS stage 2, DESIGN §1). Published values in brackets; the CPU
     // defaults are chosen by measuring quality against time (BENCHMARKS.md).
     /// Iterations of the inverse stage [20000] (`--iters` sets the nvs stage). 3000 against
-    /// 2000 (session 60): cornell relights 0.5–0.6 dB better and its albedo +0.7 dB, spheres
+    /// 2000 (session 60): cornell relights 0.3–0.6 dB better and its albedo +0.6–0.7 dB, spheres
     /// relights the same with 0.9 dB less albedo, at 1.5 × the stage's time; 4000 gains cornell
     /// 0.15 dB more but costs spheres 0.3 dB of relighting (BENCHMARKS.md).
     #[arg(long, default_value_t = 3000)]

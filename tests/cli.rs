@@ -325,7 +325,8 @@ fn run_without_a_dataset_and_zero_resolution_are_named() {
     assert!(!out.exists() && !run.join("eval").exists(), "nothing is written on bad input");
 }
 
-/// `--json -` writes the metrics to standard output (it wrote a file named `-`).
+/// `--json -` writes the metrics to standard output (it wrote a file named `-`), and the run's
+/// eval folder still gets the same metrics beside its pictures.
 #[test]
 fn eval_json_dash_is_standard_output() {
     let dir = temp_dir("json-dash");
@@ -344,7 +345,10 @@ fn eval_json_dash_is_standard_output() {
     let json: serde_json::Value = serde_json::from_str(&stdout).expect("stdout is one JSON document");
     assert_eq!(json["views"], 1, "{stdout}");
     assert!(json["mean"]["psnr"].is_number(), "{stdout}");
-    assert!(!dir.join("-").exists() && !run.join("eval/metrics.json").exists());
+    assert!(!dir.join("-").exists());
+    let kept: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval/metrics.json")).unwrap()).unwrap();
+    assert_eq!(kept, json);
 }
 
 /// Input that is read but may not mean what it says is accepted with a warning naming the file

@@ -23,8 +23,8 @@ pub struct EvalArgs {
     /// Dataset folder (defaults to the run's training data).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Where to write metrics (default RUN/eval/metrics.json; `-`: all of them to standard
-    /// output instead of their means).
+    /// Where else to write the metrics (RUN/eval/metrics.json is always written, beside the
+    /// pictures; `-`: all of them to standard output instead of their means).
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// Evaluate only the first N test views (0 = all).
@@ -267,6 +267,8 @@ pub struct PbrViewMetrics {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub albedo_psnr: Option<f32>,
     #[serde(skip_serializing_if = "Option::is_none")]
+    pub albedo_psnr_masked: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub albedo_ssim: Option<f32>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub roughness_mse: Option<f32>,
@@ -318,6 +320,44 @@ pub fn noise_ceiling_psnr(g: &[[f32; 3]], mask: &[f32], w: usize, h: usize) -> f
     (-10.0 * (se / cnt as f64).max(1e-12).log10()) as f32
 }
 
+/// One view's albedo errors, `scaled` being our linear albedo after the median scale and `gt`
+/// the decoded GT albedo; only pixels inside the GT mask (alpha > 0.5) can err, as TensoIR's
+/// protocol paints both images' background the same colour.
+#[derive(Clone, Copy, Debug)]
+pub struct AlbedoErrors {
+    /// DESIGN §5: linear, over the full image (the background counts as 0 error).
+    pub full_psnr: f32,
+    /// The same squared errors averaged over the masked pixels only: eval's albedo PSNR up to
+    /// session 60, kept so earlier figures stay comparable.
+    pub masked_psnr: f32,
+    /// Sum of squared errors as TensoIR's evaluation takes them (ours clipped to [0, 1], both
+    /// raised to 1/2.2) and the number of values over the full image, to be pooled over views.
+    pub gamma_se: f64,
+    pub values: usize,
+}
+
+pub fn albedo_errors(scaled: &[[f32; 3]], gt: &[[f32; 3]], mask: &[f32]) -> AlbedoErrors {
+    let (mut se, mut gamma_se, mut masked) = (0.0f64, 0.0f64, 0usize);
+    for ((p, g), &a) in scaled.iter().zip(gt).zip(mask) {
+        if a <= 0.5 {
+            continue;
+        }
+        masked += 3;
+        for c in 0..3 {
+            se += (p[c] as f64 - g[c] as f64).powi(2);
+            let enc = |x: f64| x.clamp(0.0, 1.0).powf(1.0 / 2.2);
+            gamma_se += (enc(p[c] as f64) - enc(g[c] as f64)).powi(2);
+        }
+    }
+    let psnr = |se: f64, n: usize| if n == 0 { f32::NAN } else { (-10.0 * (se / n as f64).max(1e-20).log10()) as f32 };
+    AlbedoErrors {
+        full_psnr: if masked == 0 { f32::NAN } else { psnr(se, 3 * gt.len()) },
+        masked_psnr: psnr(se, masked),
+        gamma_se,
+        values: 3 * gt.len(),
+    }
+}
+
 /// The material / light metrics of a run with a recovered env (DESIGN §5).
 fn eval_pbr(
     scene: &crate::pbr_scene::PbrScene,
@@ -342,6 +382,7 @@ fn eval_pbr(
     }
     let scale = median_scale(&pairs);
     let mut metrics = Vec::new();
+    let mut albedo_gamma = (0.0f64, 0usize);
     let mut pair_iter = pairs.iter();
     for (view, img) in views.iter().zip(&renders) {
         let cam = &view.camera;
@@ -359,7 +400,11 @@ fn eval_pbr(
             && let Some((pred, g, mask)) = pair_iter.next()
         {
             let scaled: Vec<[f32; 3]> = pred.iter().map(|p| [0, 1, 2].map(|k| p[k] * scale[k])).collect();
-            m.albedo_psnr = Some(psnr_masked(&scaled, g, mask));
+            let e = albedo_errors(&scaled, g, mask);
+            m.albedo_psnr = Some(e.full_psnr);
+            m.albedo_psnr_masked = Some(e.masked_psnr);
+            albedo_gamma.0 += e.gamma_se;
+            albedo_gamma.1 += e.values;
             let on_black = |v: &[[f32; 3]]| -> Vec<[f32; 3]> {
                 v.iter()
                     .zip(mask)
@@ -409,8 +454,11 @@ fn eval_pbr(
     let protocol = serde_json::json!({
         "pbr": "per-surfel Monte Carlo PBR with the cached incident light, rasterised, linear -> sRGB, over white; PSNR/SSIM as NVS",
         "albedo": format!("linear albedo scaled per channel by the median of gt/pred over all masked test pixels \
-                   (scale {:?}); GT albedo.png decoded from sRGB; PSNR over GT-masked pixels (alpha > 0.5); \
-                   SSIM on both images masked onto black", scale),
+                   (scale {:?}); GT albedo.png decoded from sRGB; albedo_psnr: PSNR per view over the full image \
+                   (DESIGN 5), errors only inside the GT mask (alpha > 0.5), then averaged; albedo_psnr_masked: the \
+                   same errors averaged over the GT-masked pixels only (eval's albedo_psnr up to session 60); \
+                   albedo_psnr_tensoir: TensoIR's evaluation, ours clipped to [0,1], both raised to 1/2.2, squared \
+                   errors pooled over every view's full image; SSIM on both images masked onto black", scale),
         "roughness": "MSE over GT-masked pixels against roughness.png (linear)",
         "indirect": "ours = L_ind part of each surfel's rendering equation, rasterised; GT = indirect.exr RGB; \
                      both clipped to [0,1] and sRGB-encoded; PSNR over GT-masked pixels; \
@@ -419,6 +467,8 @@ fn eval_pbr(
                      -10 log10 of 9/8 x the mean squared residual of the sRGB GT against its own 3x3 box mean over \
                      the GT mask (i.i.d. pixel-noise estimate; texture inside 3x3 counts as noise, so a lower estimate)",
         "albedo_scale": scale,
+        "albedo_psnr_tensoir": (albedo_gamma.1 > 0)
+            .then(|| -10.0 * (albedo_gamma.0 / albedo_gamma.1 as f64).max(1e-20).log10()),
     });
     Ok((metrics, protocol))
 }
@@ -742,6 +792,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         mean.insert("pbr_psnr".into(), serde_json::json!(pmean(&|m| Some(m.pbr_psnr))));
         mean.insert("pbr_ssim".into(), serde_json::json!(pmean(&|m| Some(m.pbr_ssim))));
         mean.insert("albedo_psnr".into(), serde_json::json!(pmean(&|m| m.albedo_psnr)));
+        mean.insert("albedo_psnr_masked".into(), serde_json::json!(pmean(&|m| m.albedo_psnr_masked)));
+        mean.insert("albedo_psnr_tensoir".into(), protocol["albedo_psnr_tensoir"].clone());
         mean.insert("albedo_ssim".into(), serde_json::json!(pmean(&|m| m.albedo_ssim)));
         mean.insert("roughness_mse".into(), serde_json::json!(pmean(&|m| m.roughness_mse)));
         mean.insert("indirect_psnr".into(), serde_json::json!(pmean(&|m| m.indirect_psnr)));
@@ -790,9 +842,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         }
     }
     let text = serde_json::to_string_pretty(&summary)?;
-    if args.json.is_none() {
-        crate::io::atomic::write_atomic(&out_dir.join("metrics.json"), text.as_bytes())?;
-    }
+    // Always beside the pictures, `--json` or not: publishing replaces the last evaluation's
+    // folder whole, which would otherwise leave pictures without their figures.
+    crate::io::atomic::write_atomic(&out_dir.join("metrics.json"), text.as_bytes())?;
     partial.publish(&final_dir)?;
     if args.json.as_deref() == Some(Path::new("-")) {
         println!("{text}");
@@ -809,6 +861,33 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    /// DESIGN §5's full-image albedo PSNR, the masked one and TensoIR's gamma-space errors, each
+    /// computed here by hand on a 4-pixel view with two pixels in the GT mask; whatever we
+    /// predict outside the mask must not count.
+    #[test]
+    fn albedo_errors_follow_the_three_protocols() {
+        let gt = [[0.5, 0.25, 1.0], [0.1, 0.2, 0.3], [0.0; 3], [0.0; 3]];
+        let mask = [1.0, 0.9, 0.2, 0.0];
+        // Inside: errors 0.1, 0, 0.5 (clipped to 1 for TensoIR) and 0.05 on every channel.
+        let pred = [[0.6, 0.25, 1.5], [0.15, 0.25, 0.35], [7.0, -3.0, 0.4], [0.9; 3]];
+        let e = super::albedo_errors(&pred, &gt, &mask);
+        let se = 0.1f64 * 0.1 + 0.5 * 0.5 + 3.0 * 0.05 * 0.05;
+        let db = |mse: f64| (-10.0 * mse.log10()) as f32;
+        assert!((e.masked_psnr - db(se / 6.0)).abs() < 1e-4, "{e:?}");
+        assert!((e.full_psnr - db(se / 12.0)).abs() < 1e-4, "{e:?}");
+        let g = |x: f64| x.powf(1.0 / 2.2);
+        let gamma_se = (g(0.6) - g(0.5)).powi(2)
+            + (g(0.15) - g(0.1)).powi(2)
+            + (g(0.25) - g(0.2)).powi(2)
+            + (g(0.35) - g(0.3)).powi(2);
+        assert!((e.gamma_se - gamma_se).abs() < 1e-9, "{e:?} vs {gamma_se}");
+        assert_eq!(e.values, 12);
+        // A perfect prediction is not a NaN, and an empty mask measures nothing.
+        assert!(super::albedo_errors(&gt, &gt, &mask).full_psnr > 100.0);
+        let empty = super::albedo_errors(&pred, &gt, &[0.0; 4]);
+        assert!(empty.masked_psnr.is_nan() && empty.full_psnr.is_nan(), "{empty:?}");
+    }
+
     /// A run trained as `--data DATA --out RUN` in one folder finds its dataset from any other;
     /// a path that exists as recorded, or a run moved elsewhere, keeps the recorded path.
     #[test]

@@ -1,6 +1,7 @@
 """How much of a run's albedo error is spatial variation within a material, and how much is each
-material's level: eval's albedo PSNR (the per-channel median-scaled `eval/test_*_albedo.png`
-against the GT `albedo.png`, mean over views), then the same with our albedo replaced, per GT
+material's level: eval's masked albedo PSNR (`albedo_psnr_masked`, eval's `albedo_psnr` until
+session 60: the per-channel median-scaled `eval/test_*_albedo.png` against the GT `albedo.png`
+over the GT mask, mean over views), then the same with our albedo replaced, per GT
 material, by its median over all the views (an oracle segmentation: GT colours quantised to
 0.1), then per material the mean ours / GT and the coefficient of variation.
 usage: albedo_segments.py DATA RUN/eval [VIEWS]
@@ -34,7 +35,7 @@ for g, o in pairs:
     off += len(g)
     ours.append(psnr(o, g))
     seg.append(psnr(median[lab], g))
-print(f'{ev}: albedo PSNR {np.mean(ours):.2f}, with per-material medians {np.mean(seg):.2f}')
+print(f'{ev}: masked albedo PSNR {np.mean(ours):.2f}, with per-material medians {np.mean(seg):.2f}')
 for t in np.argsort(-count)[:10]:
     s = label == t
     ratio = O[s].mean(0) / np.maximum(G[s].mean(0), 1e-4)

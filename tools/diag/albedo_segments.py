@@ -3,7 +3,8 @@ material's level: eval's masked albedo PSNR (`albedo_psnr_masked`, eval's `albed
 session 60: the per-channel median-scaled `eval/test_*_albedo.png` against the GT `albedo.png`
 over the GT mask, mean over views), then the same with our albedo replaced, per GT
 material, by its median over all the views (an oracle segmentation: GT colours quantised to
-0.1), then per material the mean ours / GT and the coefficient of variation.
+0.05, which parts spheres' white glossy sphere, 0.85, from its checker's light squares, 0.8;
+session 53–60 used 0.1), then per material the mean ours / GT and the coefficient of variation.
 usage: albedo_segments.py DATA RUN/eval [VIEWS]
 
 Throw-away diagnostics (numpy, PIL) for the shared scenes (flat-coloured materials); not part
@@ -26,7 +27,7 @@ for k in range(views):
     pairs.append((lin(g[..., :3])[m], lin(o[..., :3])[m]))
 G = np.concatenate([p[0] for p in pairs])
 O = np.concatenate([p[1] for p in pairs])
-keys, label, count = np.unique(np.round(G, 1), axis=0, return_inverse=True, return_counts=True)
+keys, label, count = np.unique(np.round(G * 20) / 20, axis=0, return_inverse=True, return_counts=True)
 label = label.ravel()
 median = np.array([np.median(O[label == t], 0) for t in range(len(keys))])
 ours, seg, off = [], [], 0

@@ -44,6 +44,7 @@ impl AlbedoChroma {
         albedo: &[[f32; 3]],
         lambda: f32,
         bin: f32,
+        cap: f32,
         v_albedo: &mut [[f32; 3]],
     ) -> f32 {
         let cells = (1.0 / bin).ceil() as usize + 1;
@@ -56,7 +57,7 @@ impl AlbedoChroma {
                 ((x.min(cells - 1) * cells + y.min(cells - 1)) as u32, surfel_weight(surfels, i))
             })
             .unzip_into_vecs(&mut self.cell, &mut self.weight);
-        self.core.loss(&self.cell, &self.weight, &ChromaGrid { cells }, albedo, lambda, f32::INFINITY, v_albedo)
+        self.core.loss(&self.cell, &self.weight, &ChromaGrid { cells }, albedo, lambda, cap, v_albedo)
     }
 }
 
@@ -201,7 +202,7 @@ mod tests {
         for seed in 0..4 {
             let (s, albedo) = scene(seed);
             let mut prior = AlbedoChroma::default();
-            let (c, k) = check_gradient(&albedo, |a, g| prior.loss(&s, a, 0.7, 0.02, g));
+            let (c, k) = check_gradient(&albedo, |a, g| prior.loss(&s, a, 0.7, 0.02, f32::INFINITY, g));
             (checked, kinks) = (checked + c, kinks + k);
         }
         assert!(kinks * 10 < checked, "{kinks} kinks against {checked} checked");
@@ -213,14 +214,14 @@ mod tests {
         s.opacity_logits[3] = -3.0; // opacity 0.05: out
         s.sh[5][0] = [0.0; 3].map(rgb_to_dc); // black: no hue
         let mut grad = vec![[0.0f32; 3]; s.len()];
-        let loss = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, &mut grad);
+        let loss = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, f32::INFINITY, &mut grad);
         assert!(loss > 0.0);
         assert_eq!(grad[3], [0.0; 3]);
         assert_eq!(grad[5], [0.0; 3]);
         // One albedo for every surfel: every target equals it.
         let same = vec![[0.4, 0.2, 0.6]; s.len()];
         let mut grad = vec![[0.0f32; 3]; s.len()];
-        let loss = AlbedoChroma::default().loss(&s, &same, 1.0, 0.02, &mut grad);
+        let loss = AlbedoChroma::default().loss(&s, &same, 1.0, 0.02, f32::INFINITY, &mut grad);
         assert!(loss.abs() < 1e-6, "{loss}");
     }
 
@@ -229,8 +230,8 @@ mod tests {
         let (s, albedo) = scene(3);
         let half: Vec<[f32; 3]> = albedo.iter().map(|a| a.map(|x| 0.5 * x)).collect();
         let mut g = vec![[0.0f32; 3]; s.len()];
-        let full = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, &mut g);
-        let halved = AlbedoChroma::default().loss(&s, &half, 1.0, 0.02, &mut g);
+        let full = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, f32::INFINITY, &mut g);
+        let halved = AlbedoChroma::default().loss(&s, &half, 1.0, 0.02, f32::INFINITY, &mut g);
         assert!(full > 0.01 && (0.5 * full - halved).abs() < 1e-5 * full, "{full} vs {halved}");
     }
 
@@ -244,10 +245,46 @@ mod tests {
         s.opacity_logits = vec![3.0; 3];
         let albedo = vec![[0.8, 0.1, 0.1], [0.1, 0.1, 0.7], [0.4, 0.05, 0.05]];
         let mut grad = vec![[0.0f32; 3]; 3];
-        let loss = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, &mut grad);
+        let loss = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, f32::INFINITY, &mut grad);
         assert!(loss > 0.01, "{loss}");
         assert!(grad[0][0] > 0.0 && grad[2][0] < 0.0, "{grad:?}");
         assert!(grad[1].iter().all(|g| g.abs() < 1e-7), "{grad:?}");
+    }
+
+    /// With a cap, two grey materials of different brightness (a checkerboard's squares) go
+    /// free of each other, while close albedos are still pulled together; the gradient of the
+    /// capped loss matches finite differences.
+    #[test]
+    fn a_cap_frees_materials_of_one_hue_and_different_brightness() {
+        let mut s = Surfels::random_in_box(4, [0.0; 3], [1.0; 3], 2);
+        for i in 0..4 {
+            s.sh[i][0] = [0.6, 0.6, 0.6].map(rgb_to_dc);
+        }
+        s.opacity_logits = vec![3.0; 4];
+        s.log_scales = vec![[-2.0, -2.0]; 4];
+        // Light squares 0.8 and 0.78, dark squares 0.4 and 0.42: every surfel is ~0.2 from the
+        // common mean 0.6, past a cap of 0.1; uncapped, all four are pulled towards it.
+        let albedo = vec![[0.8; 3], [0.78; 3], [0.4; 3], [0.42; 3]];
+        let mut free = vec![[0.0f32; 3]; 4];
+        let capped = AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, 0.1, &mut free);
+        assert!((capped - 3.0 * 0.1).abs() < 1e-5, "{capped}");
+        assert!(free.iter().flatten().all(|g| g.abs() < 1e-7), "{free:?}");
+        let mut pulled = vec![[0.0f32; 3]; 4];
+        AlbedoChroma::default().loss(&s, &albedo, 1.0, 0.02, f32::INFINITY, &mut pulled);
+        assert!(pulled[0][0] > 0.0 && pulled[2][0] < 0.0, "{pulled:?}");
+        // Within the cap the pull stays.
+        let close = vec![[0.62; 3], [0.6; 3], [0.58; 3], [0.6; 3]];
+        let mut g = vec![[0.0f32; 3]; 4];
+        AlbedoChroma::default().loss(&s, &close, 1.0, 0.02, 0.1, &mut g);
+        assert!(g[0][0] > 0.0 && g[2][0] < 0.0, "{g:?}");
+        let (mut checked, mut kinks) = (0, 0);
+        for seed in 0..4 {
+            let (s, albedo) = scene(seed);
+            let mut prior = AlbedoChroma::default();
+            let (c, k) = check_gradient(&albedo, |a, g| prior.loss(&s, a, 0.7, 0.02, 0.08, g));
+            (checked, kinks) = (checked + c, kinks + k);
+        }
+        assert!(kinks * 10 < checked, "{kinks} kinks against {checked} checked");
     }
 
     #[test]

@@ -298,6 +298,15 @@ pub struct TrainConfig {
     /// averages its cell and the 8 around it.
     #[arg(long, default_value_t = 0.015)]
     pub albedo_chroma_bin: f32,
+    /// Per-channel cap on that prior's difference from its cell's mean [inf: none, plain L1]:
+    /// larger differences go free, so materials of one hue but different brightness (a grey
+    /// checkerboard's squares) are not pulled together. A scene-dependent trade, so off by
+    /// default: at 0.1 spheres' albedo gains 0.8 dB and its relighting 0.1 dB, but cornell's
+    /// loses 0.4 dB and 0.3 dB: there the uncapped tie flattens the shading that the white
+    /// faces' albedo takes up in patches (BENCHMARKS.md, session 62).
+    #[arg(long, default_value_t = f32::INFINITY)]
+    #[serde(default = "albedo_chroma_cap_default")]
+    pub albedo_chroma_cap: f32,
     /// Local albedo prior in space [0.1; not in the published method, 0 = off]: surfels within
     /// a voxel of each other are pulled towards one albedo, whichever way they face, so the two
     /// faces of a thin part share it (src/train/albedo_voxel.rs; three runs each: cornell
@@ -438,6 +447,11 @@ fn albedo_voxel_off() -> f32 {
 
 fn albedo_voxel_default() -> f32 {
     0.024
+}
+
+/// `albedo_chroma_cap`'s default (and every earlier run's): no cap, plain L1.
+fn albedo_chroma_cap_default() -> f32 {
+    f32::INFINITY
 }
 
 fn albedo_voxel_cap_default() -> f32 {
@@ -646,6 +660,9 @@ impl TrainConfig {
                 format!("{} is not in [0.0001, 0.5] (a fraction of the scene extent)", self.albedo_voxel),
             );
         }
+        if !(self.albedo_chroma_cap > 0.0) {
+            return bad("albedo_chroma_cap", format!("{} must be > 0 (inf: no cap)", self.albedo_chroma_cap));
+        }
         if !(self.albedo_voxel_cap.is_finite() && self.albedo_voxel_cap > 0.0) {
             return bad("albedo_voxel_cap", format!("{} must be finite and > 0", self.albedo_voxel_cap));
         }
@@ -788,6 +805,20 @@ mod tests {
         let err =
             TrainConfig { lambda_albedo_chroma: -0.1, ..TrainConfig::default() }.validate().unwrap_err().to_string();
         assert!(err.contains("lambda_albedo_chroma"), "{err}");
+        // The chroma prior's cap: positive, `inf` (the default) for none; a settings file
+        // without it (every run before session 62) reads as none, the prior those runs had.
+        for bad in [0.0, -0.1, f32::NAN] {
+            let err =
+                TrainConfig { albedo_chroma_cap: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();
+            assert!(err.contains("albedo_chroma_cap"), "{err}");
+        }
+        assert_eq!(TrainConfig::default().albedo_chroma_cap, f32::INFINITY);
+        let old: TrainConfig = toml::from_str("iters = 3000\n").unwrap();
+        assert_eq!(old.albedo_chroma_cap, f32::INFINITY);
+        let saved = toml::to_string(&TrainConfig { albedo_chroma_cap: 0.1, ..TrainConfig::default() }).unwrap();
+        assert_eq!(toml::from_str::<TrainConfig>(&saved).unwrap().albedo_chroma_cap, 0.1);
+        let saved = toml::to_string(&TrainConfig::default()).unwrap();
+        assert_eq!(toml::from_str::<TrainConfig>(&saved).unwrap().albedo_chroma_cap, f32::INFINITY);
         for bad in [-0.1, 1.5, f32::NAN] {
             let err =
                 TrainConfig { albedo_init_hue: bad, ..TrainConfig::default() }.validate().unwrap_err().to_string();

@@ -747,6 +747,7 @@ fn iterate(
             &sc.mats.albedo,
             cfg.lambda_albedo_chroma,
             cfg.albedo_chroma_bin,
+            cfg.albedo_chroma_cap,
             &mut sc.mgrads.v_albedo,
         );
         l.total += l.albedo_chroma;

@@ -14,7 +14,9 @@
 //! Surfels are binned on (χ_r, χ_g) with cells `bin` wide; a surfel's target is the mean
 //! albedo over its cell and the 8 around it, weighted by opacity × disk area (so the visible
 //! layer sets it). Loss = λ · Σ_i w_i |a_i − ā(i)|₁ / Σ_i w_i over surfels with opacity ≥ 0.3
-//! and a colour bright enough to have a hue; ā is differentiated too. The loss scales with the
+//! and a colour bright enough to have a hue; ā is differentiated too. With `--albedo-chroma-cap` C
+//! each channel's difference counts at most C and beyond it goes free (off by default: it frees
+//! spheres' checkerboard but costs cornell, BENCHMARKS.md session 62). The loss scales with the
 //! albedo, so it leans slightly towards a darker albedo under a brighter light; the same prior
 //! on ln a (scale-free) measured worse on cornell (BENCHMARKS.md, session 33).
 

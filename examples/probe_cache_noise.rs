@@ -1,14 +1,16 @@
 //! Diagnostic: how noisy is the per-surfel rendering equation the albedo is fitted to? Renders
 //! the test views' PBR image (linear) from the run's surfels, materials and light with the
-//! incident cache traced under seeds 0 and 1 (each refresh draws new Fibonacci rotations), and
-//! reports, over the GT mask, the relative per-pixel difference between the two: its RMS / √2
-//! is the noise of one cache refresh, which the albedo tracks between refreshes.
+//! incident cache traced under two seeds (11 and 12, or `SEEDS=a,b`; each refresh draws new
+//! Fibonacci rotations), and reports, over the GT mask, the relative per-pixel difference
+//! between the two: its RMS / √2 is the noise of one cache refresh, which the albedo tracks
+//! between refreshes.
 //!
 //!     cargo run --release --example probe_cache_noise -- RUN DATA
 
 #[path = "common/probe_run.rs"]
 mod probe_run;
 
+use anyhow::Context;
 use radiogs::io::dataset::{Dataset, Split};
 use radiogs::pbr_scene::PbrScene;
 
@@ -21,10 +23,13 @@ fn main() -> anyhow::Result<()> {
     let env = radiogs::envmap::EnvMap::load(&run.join("envmap.exr"))?;
     let start = cfg.ray_start(extent);
     let factor = radiogs::train::inverse::sample_factor(&cfg);
-    let seeds: Vec<u64> = std::env::var("SEEDS")
-        .ok()
-        .map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect())
-        .unwrap_or(vec![11, 12]);
+    let seeds: Vec<u64> = match std::env::var("SEEDS") {
+        Ok(v) => v.split(',').map(|x| x.trim().parse()).collect::<Result<_, _>>().context("SEEDS")?,
+        Err(_) => vec![11, 12],
+    };
+    if seeds.len() != 2 {
+        anyhow::bail!("SEEDS: {} seeds given, the probe compares exactly two (e.g. SEEDS=11,12)", seeds.len());
+    }
     let scenes: Vec<PbrScene> = seeds
         .iter()
         .map(|&seed| {

@@ -636,18 +636,18 @@ fn iterate(
         l.mask = loss::mask_bce(&out.alpha, alpha, cfg.lambda_mask_inverse, &mut g.v_alpha);
         l.total += cfg.lambda_mask_inverse * l.mask;
     }
-    if cfg.lambda_normal > 0.0 {
+    if cfg.lambda_normal_inverse > 0.0 {
         l.normal = sc.normal.loss(
             cam,
             &out.depth,
             &out.normal,
             Some(&out.alpha),
             Some(alpha),
-            cfg.lambda_normal,
+            cfg.lambda_normal_inverse,
             &mut g.v_depth,
             &mut g.v_normal,
         );
-        l.total += cfg.lambda_normal * l.normal;
+        l.total += cfg.lambda_normal_inverse * l.normal;
     }
     // Edge-aware smoothness of the rendered albedo, roughness and normal maps.
     sc.smooth.prepare(&sc.gt, w, h);

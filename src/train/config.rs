@@ -404,7 +404,12 @@ pub struct TrainConfig {
     #[arg(long, default_value_t = 1.0)]
     #[serde(default)]
     pub albedo_init_hue: f32,
-    #[arg(long, default_value_t = 0.6)]
+    /// Fresh roughness [0.3; published 0.6]. The roughness learns little (4 % Fresnel against a
+    /// light learned through the same lobes) and ends near its start; from 0.3 spheres' glossy
+    /// balls end smoother than its diffuse ones (from 0.6 not), and albedo gains 0.3–0.7 dB and
+    /// indirect light 0.4–0.8 dB on both shared scenes, but cornell's roughness MSE doubles
+    /// (0.044 → 0.091) (BENCHMARKS.md, session 64).
+    #[arg(long, default_value_t = 0.3)]
     pub roughness_init: f32,
     #[arg(long, default_value_t = 1.5)]
     pub env_init: f32,

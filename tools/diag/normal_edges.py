@@ -64,6 +64,15 @@ def hits(objects, o, d):
                 sys.exit(f"{ob['object']}: object type {kind!r} is not supported")
     return n_best
 
+def read_json(path):
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except OSError as e:
+        sys.exit(f'{path}: cannot read ({e.strerror or e})')
+    except json.JSONDecodeError as e:
+        sys.exit(f'{path}: not JSON ({e})')
+
 def unit(v):
     return v / (np.linalg.norm(v, axis=-1, keepdims=True) + 1e-12)
 
@@ -73,13 +82,13 @@ def angle_error(p, g, mask):
 
 def main():
     data, evaldir, views = args('normal_edges.py DATA RUN/eval [VIEWS]', 16)
-    meta = json.load(open(os.path.join(data, 'README.json')))
+    meta = read_json(os.path.join(data, 'README.json'))
     bands = 7
     sums = {'ours': np.zeros(bands + 1), 'truth': np.zeros(bands + 1)}
     counts, pixels = np.zeros(bands + 1), 0
     for v in range(views):
         folder = os.path.join(data, f'test_{v:03d}')
-        cam = json.load(open(os.path.join(folder, 'metadata.json')))
+        cam = read_json(os.path.join(folder, 'metadata.json'))
         c2w = np.array([float(x) for x in cam['cam_transform_mat'].split(',')]).reshape(4, 4)
         w, h = cam['imw'], cam['imh']
         f = w / (2 * np.tan(cam['cam_angle_x'] / 2))

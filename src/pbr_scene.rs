@@ -74,8 +74,26 @@ impl PbrScene {
         sample_factor: usize,
         seed: u64,
     ) -> PbrScene {
+        PbrScene::with_importance(surfels, env, samples, start, window, sample_factor, seed, 0.0)
+    }
+
+    /// As [`new`](Self::new), drawing the share `env_importance` of each surfel's directions
+    /// from the map's peaks (the training setting `env_importance_inverse`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_importance(
+        surfels: Surfels,
+        env: EnvMap,
+        samples: usize,
+        start: crate::shade::incident::RayStart,
+        window: usize,
+        sample_factor: usize,
+        seed: u64,
+        env_importance: f32,
+    ) -> PbrScene {
         let tracer = Tracer::build(&surfels, &trace_settings());
         let mut cache = IncidentCache::default();
+        let env_s = env.box_downsample(sample_factor.max(1));
+        cache.set_importance(crate::shade::incident::EnvImportance::of_map(&env_s, samples, env_importance));
         cache.refresh(&tracer, &surfels, samples, start, seed);
         let mut mats = MaterialView::default();
         mats.update(&surfels);
@@ -140,7 +158,16 @@ impl PbrScene {
             }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
+        let mut scene = PbrScene::with_importance(
+            surfels,
+            env,
+            cfg.pbr_samples,
+            start,
+            cfg.window,
+            factor,
+            cfg.seed,
+            cfg.env_importance_inverse,
+        );
         scene.specular = cfg.specular;
         scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;
         scene.filter_inv_square = cfg.filter_inv_square;

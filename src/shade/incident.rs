@@ -54,6 +54,18 @@ pub struct EnvImportance {
     pub samples: usize,
 }
 
+impl EnvImportance {
+    /// Draw the share `share` of `samples` directions from `env`'s peaks; `None` when that is
+    /// no direction or the map has no peaks (then every direction is Fibonacci).
+    pub fn of_map(env: &EnvMap, samples: usize, share: f32) -> Option<EnvImportance> {
+        let n_env = (share.clamp(0.0, 1.0) * samples as f32).round() as usize;
+        if n_env == 0 {
+            return None;
+        }
+        EnvSampler::new(env).map(|sampler| EnvImportance { sampler, samples: n_env })
+    }
+}
+
 /// A texel-less map of `size` (width, height): footprints only need the size.
 fn footprint_grid(size: (usize, usize)) -> EnvMap {
     EnvMap { width: size.0, height: size.1, texels: Vec::new() }
@@ -246,6 +258,17 @@ impl IncidentCache {
         self.indirect.resize(n * samples, [0.0; 3]);
     }
 
+    /// Draw later rows' directions with `importance` (the rows traced so far keep theirs and
+    /// their weights), e.g. from a light that is being learned and grows peaks.
+    pub fn set_importance(&mut self, importance: Option<EnvImportance>) {
+        if importance.is_some() && self.sample_weights.len() != self.dirs.len() {
+            // Every row so far is Fibonacci.
+            self.sample_weights.clear();
+            self.sample_weights.resize(self.dirs.len(), self.weight);
+        }
+        self.importance = importance;
+    }
+
     pub fn len(&self) -> usize {
         self.visibility.len().checked_div(self.samples).unwrap_or(0)
     }
@@ -386,8 +409,9 @@ impl IncidentCache {
             for q in 0..s {
                 let (k, o) = (i * s + q, &out[j * s + q]);
                 self.dirs[k] = dirs[j * s + q];
-                if !weights.is_empty() {
-                    self.sample_weights[k] = weights[j * s + q];
+                if !self.sample_weights.is_empty() {
+                    // Fibonacci rows (no importance now) weigh `weight` each.
+                    self.sample_weights[k] = if weights.is_empty() { self.weight } else { weights[j * s + q] };
                 }
                 self.visibility[k] = o.transmittance;
                 self.indirect[k] = if radiance.is_some() {
@@ -707,6 +731,68 @@ mod tests {
         cache.footprints.clear();
         let without = shade(&cache, &small);
         assert!(with.0 == without.0 && with.3 == without.3);
+    }
+
+    /// A learned light grows a sun midway (`set_importance` between row refreshes): rows traced
+    /// afterwards mix map samples in and estimate each surfel's sunlit irradiance closer to the
+    /// truth than the Fibonacci rows; rows not re-traced keep their directions and weights, and
+    /// a light without peaks again gives Fibonacci rows of the plain weight.
+    #[test]
+    fn light_peaks_set_midway_weigh_new_rows_and_keep_old_ones() {
+        let mut env = EnvMap::constant(64, 32, [0.05, 0.06, 0.08]);
+        env.texels[7 * 64 + 20] = [900.0, 850.0, 700.0];
+        env.texels[7 * 64 + 21] = [300.0, 280.0, 250.0];
+        // Tiny, far-apart surfels facing every way: nothing occludes anything.
+        let mut s = Surfels::random_in_box(48, [-100.0; 3], [100.0; 3], 4);
+        s.log_scales.iter_mut().for_each(|l| *l = [-9.0, -9.0]);
+        let tracer = Tracer::build(&s, &TraceSettings::default());
+        let start = RayStart::offset_only(1e-3);
+        let irradiance = |c: &IncidentCache, i: usize| -> f64 {
+            let n = s.normal(i);
+            (i * c.samples..(i + 1) * c.samples)
+                .map(|k| {
+                    let d = c.dirs[k];
+                    let cos = (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]).max(0.0) as f64;
+                    c.solid_angle(k) as f64 * c.visibility[k] as f64 * env.lookup(d)[0] as f64 * cos
+                })
+                .sum()
+        };
+        let mut truth = IncidentCache::default();
+        truth.refresh(&tracer, &s, 4096, start, 1);
+        let mut cache = IncidentCache::default();
+        cache.refresh(&tracer, &s, 32, start, 2);
+        let before = cache.clone();
+        cache.set_importance(EnvImportance::of_map(&env, 32, 0.25));
+        assert!(cache.importance.as_ref().is_some_and(|imp| imp.samples == 8));
+        assert!(
+            cache.sample_weights.len() == cache.dirs.len() && cache.sample_weights.iter().all(|&w| w == cache.weight)
+        );
+        let even: Vec<u32> = (0..s.len() as u32).step_by(2).collect();
+        cache.refresh_rows(&tracer, &s, &even, start, 3);
+        let (mut err_fib, mut err_mix) = (0.0, 0.0);
+        for i in 0..s.len() {
+            let row = i * 32..(i + 1) * 32;
+            let e = (irradiance(&cache, i) - irradiance(&truth, i)).abs() / irradiance(&truth, i);
+            if i % 2 == 1 {
+                assert_eq!(cache.dirs[row.clone()], before.dirs[row.clone()]);
+                assert!(cache.sample_weights[row].iter().all(|&w| w == cache.weight));
+                err_fib += e;
+            } else {
+                assert!(cache.sample_weights[row].iter().any(|&w| w != cache.weight), "row {i} has no map samples");
+                err_mix += e;
+            }
+        }
+        // Measured: mixed rows 5.5 %, Fibonacci rows 38 % on average.
+        let (err_mix, err_fib) = (err_mix / 24.0, err_fib / 24.0);
+        assert!(
+            err_mix < 0.1 && err_mix < 0.3 * err_fib,
+            "mean relative error: mixed rows {err_mix}, Fibonacci {err_fib}"
+        );
+        // The light loses its peaks: re-traced rows are Fibonacci again, at the plain weight.
+        cache.set_importance(EnvImportance::of_map(&EnvMap::constant(64, 32, [1.0; 3]), 32, 0.25));
+        assert!(cache.importance.is_none());
+        cache.refresh_rows(&tracer, &s, &even, start, 4);
+        assert!(cache.sample_weights.iter().all(|&w| w == cache.weight));
     }
 
     #[test]

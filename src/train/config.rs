@@ -419,6 +419,13 @@ pub struct TrainConfig {
     /// directions around it: shadows come out too light (BENCHMARKS.md, sessions 53–54).
     #[arg(long, default_value_t = 0)]
     pub env_sample_height: usize,
+    /// Share of each surfel's S cached directions drawn from the learned light's peaks (its
+    /// texels above 10 × its mean: a sun), the rest Fibonacci, mixed by the balance heuristic;
+    /// the sampler follows the light at every cache check (`cache_every`/4). 0 = Fibonacci
+    /// only (as published); a light without peaks (the start, a smooth sky) gets none.
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub env_importance_inverse: f32,
     /// Start the env from this map (.hdr/.exr) instead of a constant: "known light" runs, and
     /// with `--lr-env 0` a light held fixed (diagnostics, ablations).
     #[arg(long)]
@@ -721,6 +728,12 @@ impl TrainConfig {
         if !(self.env_init.is_finite() && self.env_init > 0.0) {
             return bad("env_init", format!("{} must be > 0", self.env_init));
         }
+        if !(0.0..=0.9).contains(&self.env_importance_inverse) {
+            return bad(
+                "env_importance_inverse",
+                format!("{} is not a share in [0, 0.9] (0 = Fibonacci directions only)", self.env_importance_inverse),
+            );
+        }
         if self.env_sample_height != 0
             && (self.env_sample_height > self.env_height || self.env_height % self.env_sample_height != 0)
         {
@@ -897,6 +910,19 @@ mod tests {
         assert!(TrainConfig { specular_rays: 1, ..TrainConfig::default() }.validate().is_ok());
         let old: TrainConfig = toml::from_str("iters = 3000\nspecular = \"traced\"\n").unwrap();
         assert_eq!((old.specular, old.specular_rays), (Specular::Traced, 2));
+    }
+
+    /// `env_importance_inverse` is a share in [0, 0.9] (the error names it); a run saved before
+    /// the setting reads as 0, the Fibonacci directions it was trained with.
+    #[test]
+    fn env_importance_inverse_is_validated_and_old_runs_read_zero() {
+        for bad in [-0.1f32, 0.95, f32::NAN] {
+            let err = TrainConfig { env_importance_inverse: bad, ..TrainConfig::default() }.validate().unwrap_err();
+            assert!(err.to_string().contains("env_importance_inverse"), "{err}");
+        }
+        assert!(TrainConfig { env_importance_inverse: 0.25, ..TrainConfig::default() }.validate().is_ok());
+        let old: TrainConfig = toml::from_str("iters = 3000\n").unwrap();
+        assert_eq!(old.env_importance_inverse, 0.0);
     }
 
     /// A hand-written `--config` file that leaves out the settings whose serde default is the

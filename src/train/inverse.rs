@@ -38,7 +38,7 @@ use crate::io::ply::write_ply_trained;
 use crate::loss::{self, EdgeAwareSmoothness, NormalConsistency, Ssim};
 use crate::optim::{LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
-use crate::shade::incident::IncidentCache;
+use crate::shade::incident::{EnvImportance, IncidentCache};
 use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
 use crate::shade::splitsum::{SplitSum, SplitSumGrads};
 use crate::shade::traced_specular::{SpecularSamples, TracedSpecular};
@@ -214,6 +214,9 @@ impl InverseState {
         c.put("cache.indirect", self.cache.indirect.iter().flatten().copied().collect());
         // Iterations (< 2^24) are exact in f32.
         c.put("cache.traced_at", self.traced_at.iter().map(|&t| t as f32).collect());
+        if !self.cache.sample_weights.is_empty() {
+            c.put("cache.sample_weights", self.cache.sample_weights.clone());
+        }
         c
     }
 
@@ -237,6 +240,8 @@ impl InverseState {
             dirs: triples("cache.dirs")?,
             visibility: c.require(path, "cache.visibility")?.to_vec(),
             indirect: triples("cache.indirect")?,
+            // Rows drawn partly from the light's peaks (`env_importance_inverse`) weigh per sample.
+            sample_weights: c.blob("cache.sample_weights").map(<[f32]>::to_vec).unwrap_or_default(),
             ..IncidentCache::default()
         };
         if cache.len() != surfels.len() && !cache.is_empty() {
@@ -244,7 +249,11 @@ impl InverseState {
         }
         // Every per-ray blob holds one entry per ray (shading indexes them together).
         let rays = cache.visibility.len();
-        for (name, len) in [("cache.dirs", cache.dirs.len()), ("cache.indirect", cache.indirect.len())] {
+        let weights = cache.sample_weights.len();
+        for (name, len) in [("cache.dirs", cache.dirs.len()), ("cache.indirect", cache.indirect.len())]
+            .into_iter()
+            .chain((weights > 0).then_some(("cache.sample_weights", weights)))
+        {
             if len != rays {
                 return Err(Error::format(path, name, format!("{len} rays, but cache.visibility holds {rays}")));
             }
@@ -817,6 +826,16 @@ fn draw_background(cfg: &TrainConfig, rng: &mut rand_pcg::Pcg64) -> [f32; 3] {
     }
 }
 
+/// Draw the cache's next rows partly from the learned light's peaks (`env_importance_inverse`),
+/// with the light as the shading reads it now; rows traced before keep their directions and
+/// weights, so every row stays an unbiased estimate of its surfel's incident light.
+fn follow_light_peaks(cfg: &TrainConfig, state: &mut InverseState) {
+    if cfg.env_importance_inverse > 0.0 {
+        let env_s = state.env().box_downsample(sample_factor(cfg));
+        state.cache.set_importance(EnvImportance::of_map(&env_s, cfg.pbr_samples, cfg.env_importance_inverse));
+    }
+}
+
 /// The prefiltered env of the split-sum specular path, when the config uses it.
 fn split_sum_for(cfg: &TrainConfig, env: &EnvMap) -> crate::Result<Option<SplitSum>> {
     Ok(match cfg.specular {
@@ -946,6 +965,7 @@ pub fn run_until(
     let mut tracer = Tracer::build(&state.surfels, &trace_settings());
     let start = cfg.ray_start(state.extent);
     let mut times = InverseTimes::default();
+    follow_light_peaks(cfg, &mut state);
     if state.cache.len() != state.surfels.len() || state.cache.samples != cfg.pbr_samples {
         let t = Instant::now();
         state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, start, cfg.seed ^ state.iteration as u64);
@@ -1042,6 +1062,7 @@ pub fn run_until(
             let limit = cfg.cache_every.saturating_sub(check_every);
             stale.clear();
             stale.extend((0..state.traced_at.len() as u32).filter(|&i| it - state.traced_at[i as usize] > limit));
+            follow_light_peaks(cfg, &mut state);
             state.cache.refresh_rows(&tracer, &state.surfels, &stale, start, cfg.seed ^ it as u64);
             for &i in &stale {
                 state.traced_at[i as usize] = it;
@@ -1130,6 +1151,15 @@ mod tests {
             let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
             assert!(err.contains("checkpoint_inverse.bin") && err.contains(blob), "{err}");
         }
+        // Rows drawn partly from a map keep their per-sample weights through a checkpoint.
+        state.cache.sample_weights = (0..state.cache.dirs.len()).map(|k| 0.1 + k as f32).collect();
+        let c = state.to_checkpoint(&cfg);
+        let back = InverseState::from_checkpoint(path, &c, &cfg).expect("weights load");
+        assert_eq!(back.cache.sample_weights, state.cache.sample_weights);
+        let mut cut = c.clone();
+        cut.put("cache.sample_weights", vec![1.0; 5]);
+        let err = InverseState::from_checkpoint(path, &cut, &cfg).err().expect("refused").to_string();
+        assert!(err.contains("cache.sample_weights"), "{err}");
         // A wrong sample count, and one whose product with the surfel count overflows.
         for samples in [3u64, 1 << 62] {
             let mut c = good.clone();

@@ -49,6 +49,32 @@ struct TrainWrapper {
     args: TrainConfig,
 }
 
+/// `synth`'s arguments for the demo's dataset: 48 + 8 views at `--res` and 32 spp (`synth`'s
+/// default 256 takes ~4 × longer here), relit under studio and sunset.
+fn demo_synth_args(args: &DemoArgs, data: &Path) -> anyhow::Result<crate::synth::SynthArgs> {
+    use clap::Parser;
+    Ok(SynthWrapper::try_parse_from([
+        "synth",
+        "--scene",
+        &args.scene,
+        "--out",
+        &data.to_string_lossy(),
+        "--res",
+        &args.res.to_string(),
+        "--train-views",
+        "48",
+        "--test-views",
+        "8",
+        "--spp",
+        "32",
+        "--relight-envs",
+        "studio,sunset",
+        "--seed",
+        &args.seed.to_string(),
+    ])?
+    .args)
+}
+
 /// A dataset an earlier demo left in `data` is used again only if it is the one asked for:
 /// the scene, size and seed its README.json records (a `--scene cornell` after a spheres demo
 /// used to train on the spheres). A dataset that radiogs did not synthesise is used as it is.
@@ -109,7 +135,6 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
     // Settings that cannot train are refused before minutes of synthesis.
     cfg.validate()?;
     if !data.join("transforms_train.json").is_file() {
-        use clap::Parser;
         // synth refuses a folder that holds files; say it in the demo's terms.
         if std::fs::read_dir(&data).is_ok_and(|mut d| d.next().is_some()) {
             anyhow::bail!(
@@ -117,24 +142,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
                 data.display()
             );
         }
-        let synth = SynthWrapper::try_parse_from([
-            "synth",
-            "--scene",
-            &args.scene,
-            "--out",
-            &data.to_string_lossy(),
-            "--res",
-            &args.res.to_string(),
-            "--train-views",
-            "48",
-            "--test-views",
-            "8",
-            "--relight-envs",
-            "studio,sunset",
-            "--seed",
-            &args.seed.to_string(),
-        ])?
-        .args;
+        let synth = demo_synth_args(args, &data)?;
         eprintln!("[1/4] synthesising '{}' into {}", args.scene, data.display());
         crate::synth::run(&synth)?;
         steps.push(("synthesis", step.elapsed().as_secs_f64()));
@@ -536,6 +544,22 @@ mod tests {
             super::time_split(90.0, &[("training", 61.0), ("report", 2.5)]),
             "1 min 30 s in all: training 1 min 01 s, report 2.5 s"
         );
+    }
+
+    /// The demo's dataset keeps its size and 32 spp whatever `synth`'s defaults are (its 256
+    /// made the demo's synthesis ~4 × longer in session 65).
+    #[test]
+    fn the_demo_synthesises_at_its_own_size_and_32_spp() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Wrapper {
+            #[command(flatten)]
+            args: super::DemoArgs,
+        }
+        let demo = Wrapper::parse_from(["demo"]).args;
+        let s = super::demo_synth_args(&demo, std::path::Path::new("demo/data")).unwrap();
+        assert_eq!((s.spp, s.res, s.train_views, s.test_views), (32, 128, 48, 8));
+        assert_eq!(s.relight_envs, Some(vec!["studio".to_string(), "sunset".to_string()]));
     }
 
     #[test]

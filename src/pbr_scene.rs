@@ -74,26 +74,8 @@ impl PbrScene {
         sample_factor: usize,
         seed: u64,
     ) -> PbrScene {
-        PbrScene::with_importance(surfels, env, samples, start, window, sample_factor, seed, 0.0)
-    }
-
-    /// As [`new`](Self::new), drawing the share `env_importance` of each surfel's directions
-    /// from the map's peaks (the training setting `env_importance_inverse`).
-    #[allow(clippy::too_many_arguments)]
-    pub fn with_importance(
-        surfels: Surfels,
-        env: EnvMap,
-        samples: usize,
-        start: crate::shade::incident::RayStart,
-        window: usize,
-        sample_factor: usize,
-        seed: u64,
-        env_importance: f32,
-    ) -> PbrScene {
         let tracer = Tracer::build(&surfels, &trace_settings());
         let mut cache = IncidentCache::default();
-        let env_s = env.box_downsample(sample_factor.max(1));
-        cache.set_importance(crate::shade::incident::EnvImportance::of_map(&env_s, samples, env_importance));
         cache.refresh(&tracer, &surfels, samples, start, seed);
         let mut mats = MaterialView::default();
         mats.update(&surfels);
@@ -110,6 +92,20 @@ impl PbrScene {
             specular_rays: RENDER_RAYS_FACTOR * crate::train::config::DEFAULT_SPECULAR_RAYS,
             seed,
         }
+    }
+
+    /// Re-trace the incident cache with the share `env_importance` of each surfel's directions
+    /// drawn from the map's peaks (the training setting `env_importance_inverse`); nothing
+    /// happens at 0 or for a map without peaks.
+    pub fn draw_from_light_peaks(&mut self, env_importance: f32) {
+        let env_s = self.env.box_downsample(self.sample_factor.max(1));
+        let samples = self.cache.samples;
+        let Some(importance) = crate::shade::incident::EnvImportance::of_map(&env_s, samples, env_importance) else {
+            return;
+        };
+        self.cache.set_importance(Some(importance));
+        let tracer = Tracer::build(&self.surfels, &trace_settings());
+        self.cache.refresh(&tracer, &self.surfels, samples, self.ray_start, self.seed);
     }
 
     /// The scene of a run after the inverse stage (`point_cloud.ply` + `envmap.exr`), or None
@@ -158,16 +154,8 @@ impl PbrScene {
             }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        let mut scene = PbrScene::with_importance(
-            surfels,
-            env,
-            cfg.pbr_samples,
-            start,
-            cfg.window,
-            factor,
-            cfg.seed,
-            cfg.env_importance_inverse,
-        );
+        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
+        scene.draw_from_light_peaks(cfg.env_importance_inverse);
         scene.specular = cfg.specular;
         scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;
         scene.filter_inv_square = cfg.filter_inv_square;

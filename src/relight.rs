@@ -19,7 +19,6 @@
 use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::optim::{LearningRates, SurfelAdam};
-use crate::shade::env_sampling::EnvSampler;
 use crate::shade::incident::{EnvImportance, IncidentCache, RayStart};
 use crate::shade::pbr::{Detach, shade_surfels};
 use crate::shade::splitsum::SplitSum;
@@ -157,10 +156,7 @@ pub fn traced_cache(
     let split = SplitSum::new(env)?;
     let env_s = env.box_downsample(sample_factor.max(1));
     let mut cache = IncidentCache::default();
-    let n_env = (env_importance.clamp(0.0, 1.0) * samples as f32).round() as usize;
-    if n_env > 0 {
-        cache.importance = EnvSampler::new(&env_s).map(|sampler| EnvImportance { sampler, samples: n_env });
-    }
+    cache.set_importance(EnvImportance::of_map(&env_s, samples, env_importance));
     let n = surfels.len();
     // Bounce 1: each surfel's split-sum radiance along its normal (linear), as a traced feature.
     let mut radiance: Vec<f32> = (0..n)
@@ -604,7 +600,7 @@ mod tests {
         let env_s = env.box_downsample(factor);
         let mut reference = IncidentCache::default();
         // Half of each surfel's directions from the map: the recorded rays are the same ones.
-        reference.importance = Some(EnvImportance { sampler: EnvSampler::new(&env_s).unwrap(), samples: samples / 2 });
+        reference.importance = Some(EnvImportance::of_map(&env_s, samples, 0.5).expect("the map has a sun"));
         let mut previous: Option<Vec<[f32; 3]>> = None;
         for bounces in 1..=3 {
             reference.refresh_with(&tracer, &s, samples, start, seed, Some(&radiance));

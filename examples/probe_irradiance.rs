@@ -70,7 +70,7 @@ impl Tally {
 fn main() -> anyhow::Result<()> {
     let probe_run::ProbeRun { run, data, cfg, extent, surfels, .. } = probe_run::from_args("probe_irradiance")?;
     let readme = scene_readme::load(&data)?;
-    let env_path = data.join("envmaps").join(format!("{}.exr", readme.environment.train_env));
+    let env_path = readme.train_env_path(&data);
     let run_env = run.join("envmap.exr");
     // Without a recovered light, the dataset's at the run's env size (as `oracle_materials`).
     let env = if run_env.is_file() {

@@ -49,7 +49,7 @@ fn main() -> anyhow::Result<()> {
     let scene = PbrScene::from_run(&run)?.context("no envmap")?;
     let ds = Dataset::open(&data)?;
     let readme = scene_readme::load(&data)?;
-    let gt_env = EnvMap::load(&data.join("envmaps").join(format!("{}.exr", readme.environment.train_env)))?;
+    let gt_env = EnvMap::load(&readme.train_env_path(&data))?;
     let centres: Vec<[f32; 3]> = ds.views(Split::Train).iter().map(|v| v.camera.position().to_array()).collect();
     let s = &scene.surfels;
     let cache = &scene.cache;

@@ -7,7 +7,10 @@
 //! light under the true env restricted to the cached directions, the shader's own direct-light
 //! estimate against the same estimator about the true normal (512 directions, true visibility)
 //! and with our normal but the true visibility, and the normals' tilt and lean away from the
-//! nearest sphere.
+//! nearest sphere. Last, the shadow of the light's brightest texel (a sun): one ray per floor
+//! surfel traced one-sided (as the PBR stages) and two-sided, its transmittance where the true
+//! spheres block it (a leak) and where they do not. Reads the Cycles datasets of `../shared/data`
+//! and `radiogs synth` scenes.
 //!
 //!     cargo run --release --example probe_visibility -- RUN DATA
 //!
@@ -25,7 +28,7 @@ use radiogs::shade::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemi
 fn main() -> anyhow::Result<()> {
     let probe_run::ProbeRun { data, cfg, extent, surfels, .. } = probe_run::from_args("probe_visibility")?;
     let readme = scene_readme::load(&data)?;
-    let env_path = data.join("envmaps").join(format!("{}.exr", readme.environment.train_env));
+    let env_path = readme.train_env_path(&data);
     let true_env = radiogs::envmap::EnvMap::load(&env_path)?;
     let start = cfg.ray_start(extent);
     let scene = PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed);
@@ -57,6 +60,8 @@ fn main() -> anyhow::Result<()> {
         mean_normal: [f64; 3],
     }
     let mut bins = vec![Bin::default(); edges.len() - 1];
+    // Floor surfels (index, foot point, gap bin) for the sun-ray section at the end.
+    let mut floor_surfels: Vec<(usize, [f64; 3], usize)> = Vec::new();
     let mut dense = vec![[0.0f32; 3]; 512];
     // Luminance-weighted mean direction of the true light over the upper hemisphere.
     let mut light_dir = [0.0f64; 3];
@@ -114,6 +119,7 @@ fn main() -> anyhow::Result<()> {
         let c = readme.objects[nearest_sphere].location;
         let (rx, ry) = (foot[0] - c[0], foot[1] - c[1]);
         let rl = (rx * rx + ry * ry).sqrt().max(1e-12);
+        floor_surfels.push((i, foot, b));
         let bin = &mut bins[b];
         bin.surfels += 1;
         let n = scene.surfels.normal(i);
@@ -207,7 +213,85 @@ fn main() -> anyhow::Result<()> {
             towards(b.mean_normal, light_dir)
         );
     }
+    sun_rays(&scene, &true_env, start, &readme, &spheres, &floor_surfels, &edges);
     Ok(())
+}
+
+/// The shadow of the light's brightest direction (a sun): one ray per floor surfel, traced as
+/// the cache traces (the run's ray start) one-sided (the PBR stages' back-face culling) and
+/// two-sided, against the true spheres. A truly shadowed surfel's transmittance is a leak of
+/// the sun into its shadow; a lit one's missing transmittance a false shadow.
+fn sun_rays(
+    scene: &PbrScene,
+    true_env: &radiogs::envmap::EnvMap,
+    start: radiogs::shade::incident::RayStart,
+    readme: &scene_readme::SceneReadme,
+    spheres: &[usize],
+    floor_surfels: &[(usize, [f64; 3], usize)],
+    edges: &[f64],
+) {
+    use radiogs::trace::{Ray, RayOutput, Tracer, skip_plane_above, trace};
+    let (mut sun, mut best) = ([0.0f32, 0.0, 1.0], f32::NEG_INFINITY);
+    for j in 0..true_env.height {
+        for i in 0..true_env.width {
+            let t = true_env.texels[j * true_env.width + i];
+            let l = 0.2126 * t[0] + 0.7152 * t[1] + 0.0722 * t[2];
+            if l > best {
+                (best, sun) = (l, true_env.texel_dir(i, j));
+            }
+        }
+    }
+    println!(
+        "sun rays: brightest texel at elevation {:.1}°, azimuth {:.1}°",
+        (sun[2] as f64).clamp(-1.0, 1.0).asin().to_degrees(),
+        (sun[1] as f64).atan2(sun[0] as f64).to_degrees()
+    );
+    let surfels = &scene.surfels;
+    let rays: Vec<Ray> = floor_surfels
+        .iter()
+        .map(|&(i, _, _)| {
+            let (n, m) = (surfels.normal(i), surfels.means[i]);
+            let origin = [0, 1, 2].map(|k| m[k] + start.offset * n[k]);
+            let skip_below = start.skip_margin.map_or([0.0; 4], |margin| skip_plane_above(n, m, margin));
+            Ray { origin, dir: sun, skip_below }
+        })
+        .collect();
+    let one = radiogs::train::inverse::trace_settings();
+    let two = radiogs::trace::TraceSettings { two_sided: true, ..one.clone() };
+    let mut t = [vec![RayOutput::default(); rays.len()], vec![RayOutput::default(); rays.len()]];
+    for (settings, out) in [one, two].iter().zip(t.iter_mut()) {
+        trace(&Tracer::build(surfels, settings), surfels, &rays, None, out, None);
+    }
+    println!(
+        "gap to sphere | lit surfels | T one-sided / two-sided (lit) | shadowed surfels | T one-sided / two-sided (shadowed: the leak)"
+    );
+    let sun64 = sun.map(|x| x as f64);
+    for b in 0..edges.len() - 1 {
+        let (mut lit, mut shadowed) = ((0usize, 0.0f64, 0.0f64), (0usize, 0.0f64, 0.0f64));
+        for (k, &(_, foot, bin)) in floor_surfels.iter().enumerate() {
+            if bin != b {
+                continue;
+            }
+            let blocked = spheres.iter().any(|&o| readme.objects[o].ray_entry(foot, sun64).is_some());
+            let acc = if blocked { &mut shadowed } else { &mut lit };
+            acc.0 += 1;
+            acc.1 += t[0][k].transmittance as f64;
+            acc.2 += t[1][k].transmittance as f64;
+        }
+        let mean = |a: (usize, f64, f64)| (a.1 / a.0.max(1) as f64, a.2 / a.0.max(1) as f64);
+        let (l, s) = (mean(lit), mean(shadowed));
+        println!(
+            "[{:.2}, {:.2}) | {} | {:.3} / {:.3} | {} | {:.3} / {:.3}",
+            edges[b],
+            edges[b + 1],
+            lit.0,
+            l.0,
+            l.1,
+            shadowed.0,
+            s.0,
+            s.1
+        );
+    }
 }
 
 /// Angle of vector v from +z, degrees.

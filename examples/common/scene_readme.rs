@@ -1,5 +1,6 @@
-//! The object list of a Blender-Cycles dataset's `README.json` (as in `../shared/data`): shapes,
-//! transforms and Principled materials, with signed distances and ray hits for the diagnostics.
+//! The object list of a Blender-Cycles dataset's `README.json` (as in `../shared/data`) or of a
+//! `radiogs synth` scene's: shapes, transforms and Principled materials, with signed distances
+//! and ray hits for the diagnostics.
 //! Only rotations about z occur in these scenes; anything else is refused with a clear error.
 //! Included by two example binaries, each using part of it.
 #![allow(dead_code)]
@@ -19,6 +20,20 @@ pub struct SceneReadme {
 #[derive(Deserialize)]
 pub struct Environment {
     pub train_env: String,
+    /// The training map's file relative to the dataset (`radiogs synth` names it); None: the
+    /// Cycles datasets' `envmaps/{train_env}.exr`.
+    #[serde(default)]
+    pub train_env_file: Option<String>,
+}
+
+impl SceneReadme {
+    /// The training light's map file.
+    pub fn train_env_path(&self, data: &Path) -> std::path::PathBuf {
+        match &self.environment.train_env_file {
+            Some(f) => data.join(f),
+            None => data.join("envmaps").join(format!("{}.exr", self.environment.train_env)),
+        }
+    }
 }
 
 #[derive(Deserialize)]
@@ -71,8 +86,15 @@ pub enum Shape {
 pub fn load(data: &Path) -> anyhow::Result<SceneReadme> {
     let path = data.join("README.json");
     let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let readme: SceneReadme = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not a scene README (objects, materials)", path.display()))?;
+    let readme: SceneReadme = match serde_json::from_str(&text) {
+        Ok(r) => r,
+        Err(cycles_err) => from_synth(&text).map_err(|synth_err| {
+            anyhow::anyhow!(
+                "{}: not a scene README (Cycles layout: {cycles_err}; radiogs synth layout: {synth_err})",
+                path.display()
+            )
+        })?,
+    };
     for o in &readme.objects {
         o.shape().with_context(|| format!("{}: object {}", path.display(), o.object))?;
         if o.rotation_euler[0] != 0.0 || o.rotation_euler[1] != 0.0 {
@@ -83,6 +105,82 @@ pub fn load(data: &Path) -> anyhow::Result<SceneReadme> {
         }
     }
     Ok(readme)
+}
+
+/// A `radiogs synth` README.json in this module's terms: spheres as they are, the disc floor as
+/// a 20 mm cylinder whose top is the disc, boxes by centre, half extents and z rotation. Each
+/// material's base colour is its constant or first checker/stripe colour (the probes that read
+/// colours need Cycles' checker; the geometry is what the synthetic scenes are used for).
+fn from_synth(text: &str) -> anyhow::Result<SceneReadme> {
+    use serde_json::Value;
+    let v: Value = serde_json::from_str(text)?;
+    let f = |x: &Value| x.as_f64().context("not a number");
+    let v3 = |x: &Value| -> anyhow::Result<[f64; 3]> {
+        let a = x.as_array().filter(|a| a.len() == 3).context("not a 3-vector")?;
+        Ok([f(&a[0])?, f(&a[1])?, f(&a[2])?])
+    };
+    let mats = v["materials"].as_array().context("materials: not a list")?;
+    let mut materials = HashMap::new();
+    let mut names = Vec::new();
+    for m in mats {
+        let name = m["name"].as_str().context("material without a name")?.to_string();
+        let colour = if m["albedo"]["value"].is_array() { v3(&m["albedo"]["value"])? } else { v3(&m["albedo"]["a"])? };
+        let rough = &m["roughness"];
+        let roughness = if rough["value"].is_number() { f(&rough["value"])? } else { f(&rough["a"])? };
+        materials.insert(name.clone(), Material { roughness, base_color_linear: BaseColor::Rgb(colour) });
+        names.push(name);
+    }
+    let mut objects = Vec::new();
+    for o in v["objects"].as_array().context("objects: not a list")? {
+        let name = o["name"].as_str().context("object without a name")?.to_string();
+        let material = names.get(o["material"].as_u64().context("material: not an index")? as usize).cloned();
+        let material = material.with_context(|| format!("object {name}: material index out of range"))?;
+        let sh = &o["shape"];
+        let none = Params { radius: None, depth: None, half_extents: None };
+        let (kind, location, rz, params) = match sh["type"].as_str() {
+            Some("sphere") => {
+                ("uv_sphere", v3(&sh["center"])?, 0.0, Params { radius: Some(f(&sh["radius"])?), ..none })
+            }
+            Some("disc") => {
+                if v3(&sh["normal"])? != [0.0, 0.0, 1.0] {
+                    bail!("object {name}: only discs facing +z are handled");
+                }
+                let c = v3(&sh["center"])?;
+                (
+                    "cylinder",
+                    [c[0], c[1], c[2] - 0.01],
+                    0.0,
+                    Params { radius: Some(f(&sh["radius"])?), depth: Some(0.02), ..none },
+                )
+            }
+            Some("box") if sh["min"].is_array() => {
+                let (lo, hi) = (v3(&sh["min"])?, v3(&sh["max"])?);
+                let c = [0, 1, 2].map(|k| 0.5 * (lo[k] + hi[k]));
+                ("box", c, 0.0, Params { half_extents: Some([0, 1, 2].map(|k| 0.5 * (hi[k] - lo[k]))), ..none })
+            }
+            Some("box") => {
+                let rz = if sh["rotation_z"].is_number() { f(&sh["rotation_z"])? } else { 0.0 };
+                ("box", v3(&sh["center"])?, rz, Params { half_extents: Some(v3(&sh["half_extents"])?), ..none })
+            }
+            other => bail!("object {name}: shape {other:?} is not handled (sphere, disc, box)"),
+        };
+        objects.push(Object {
+            object: name,
+            kind: kind.into(),
+            location,
+            rotation_euler: [0.0, 0.0, rz],
+            params,
+            material,
+        });
+    }
+    let env = &v["environment"];
+    let train_env = env["train_env"].as_str().context("environment.train_env missing")?.to_string();
+    let file = env["files"][&train_env].as_str().with_context(|| format!("environment.files.{train_env} missing"))?;
+    Ok(SceneReadme {
+        objects,
+        materials,
+        environment: Environment { train_env_file: Some(file.to_string()), train_env },
+    })
 }
 
 impl Object {

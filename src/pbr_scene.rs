@@ -14,8 +14,9 @@ use crate::shade::traced_specular::TracedSpecular;
 use crate::surfels::Surfels;
 use crate::trace::Tracer;
 use crate::train::config::Specular;
+use crate::train::config::TraceBackFaces;
 use crate::train::consistency::encode;
-use crate::train::inverse::{SpecularLobe, SurfelShading, VIEW_CHANNELS, trace_settings};
+use crate::train::inverse::{SpecularLobe, SurfelShading, VIEW_CHANNELS, trace_settings_with};
 use crate::train::material::MaterialView;
 use std::path::Path;
 
@@ -39,6 +40,8 @@ pub struct PbrScene {
     /// training config's `specular_rays`.
     pub specular_rays: usize,
     pub seed: u64,
+    /// How traced rays treat back faces (the training config's `trace_back_faces`).
+    pub back_faces: TraceBackFaces,
 }
 
 /// A render's traced specular rays per training ray (see [`PbrScene::specular_rays`]).
@@ -64,7 +67,8 @@ pub struct PbrImages {
 }
 
 impl PbrScene {
-    /// A scene from its parts; traces the incident cache (S samples, where rays start in scene units).
+    /// A scene from its parts; traces the incident cache (S samples, where rays start in scene
+    /// units) with back faces culled (RadioGS).
     pub fn new(
         surfels: Surfels,
         env: EnvMap,
@@ -74,7 +78,22 @@ impl PbrScene {
         sample_factor: usize,
         seed: u64,
     ) -> PbrScene {
-        let tracer = Tracer::build(&surfels, &trace_settings());
+        Self::with_back_faces(surfels, env, samples, start, window, sample_factor, seed, TraceBackFaces::Cull)
+    }
+
+    /// [`PbrScene::new`] with traced back faces as `back_faces` says.
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_back_faces(
+        surfels: Surfels,
+        env: EnvMap,
+        samples: usize,
+        start: crate::shade::incident::RayStart,
+        window: usize,
+        sample_factor: usize,
+        seed: u64,
+        back_faces: TraceBackFaces,
+    ) -> PbrScene {
+        let tracer = Tracer::build(&surfels, &trace_settings_with(back_faces));
         let mut cache = IncidentCache::default();
         cache.refresh(&tracer, &surfels, samples, start, seed);
         let mut mats = MaterialView::default();
@@ -91,6 +110,7 @@ impl PbrScene {
             ray_start: start,
             specular_rays: RENDER_RAYS_FACTOR * crate::train::config::DEFAULT_SPECULAR_RAYS,
             seed,
+            back_faces,
         }
     }
 
@@ -104,7 +124,7 @@ impl PbrScene {
             return;
         };
         self.cache.set_importance(Some(importance));
-        let tracer = Tracer::build(&self.surfels, &trace_settings());
+        let tracer = Tracer::build(&self.surfels, &trace_settings_with(self.back_faces));
         self.cache.refresh(&tracer, &self.surfels, samples, self.ray_start, self.seed);
     }
 
@@ -136,6 +156,7 @@ impl PbrScene {
                 sample_factor,
                 bounces,
                 env_importance,
+                cfg.trace_back_faces,
             )?;
             let specular = cfg.specular;
             let filter_inv_square = cfg.filter_inv_square;
@@ -151,10 +172,20 @@ impl PbrScene {
                 ray_start: start,
                 specular_rays: RENDER_RAYS_FACTOR * cfg.specular_rays,
                 seed: cfg.seed,
+                back_faces: cfg.trace_back_faces,
             }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
+        let mut scene = PbrScene::with_back_faces(
+            surfels,
+            env,
+            cfg.pbr_samples,
+            start,
+            cfg.window,
+            factor,
+            cfg.seed,
+            cfg.trace_back_faces,
+        );
         scene.draw_from_light_peaks(cfg.env_importance_inverse);
         scene.specular = cfg.specular;
         scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;
@@ -186,7 +217,8 @@ impl PbrScene {
     pub fn render_with(&self, cam: &Camera, bg: [f32; 3], split_sum: Option<&SplitSum>) -> PbrImages {
         let mut shading = SurfelShading::default();
         let env = self.env.box_downsample(self.sample_factor);
-        let tracer = (self.specular == Specular::Traced).then(|| Tracer::build(&self.surfels, &trace_settings()));
+        let tracer = (self.specular == Specular::Traced)
+            .then(|| Tracer::build(&self.surfels, &trace_settings_with(self.back_faces)));
         let lobe = match (split_sum, &tracer) {
             (Some(ss), _) => SpecularLobe::SplitSum(ss),
             (None, Some(tracer)) => SpecularLobe::Traced(TracedSpecular {

@@ -24,8 +24,9 @@ use crate::shade::pbr::{Detach, shade_surfels};
 use crate::shade::splitsum::SplitSum;
 use crate::surfels::Surfels;
 use crate::trace::Tracer;
+use crate::train::config::TraceBackFaces;
 use crate::train::consistency::{RcScratch, RcSettings, encode, radiometric_consistency};
-use crate::train::inverse::trace_settings;
+use crate::train::inverse::trace_settings_with;
 use crate::train::material::{MaterialGrads, MaterialView};
 use anyhow::Context;
 use rand::{RngExt, SeedableRng};
@@ -117,6 +118,8 @@ pub struct FinetuneSettings {
     pub bounces: usize,
     /// Share of the traced start's directions drawn from the map ([`traced_cache`]).
     pub env_importance: f32,
+    /// The trained run's `trace_back_faces`.
+    pub back_faces: TraceBackFaces,
     pub seed: u64,
 }
 
@@ -140,6 +143,7 @@ pub const TRACED_BOUNCES: usize = 4;
 /// the rendering equation of each bounce samples `env` box-filtered by `sample_factor` (as the
 /// PBR render does). A share `env_importance` of each surfel's `samples` directions is drawn
 /// from that map's peaks ([`EnvImportance`]; none if it has no peaks), the rest are Fibonacci.
+/// Back faces as the run was trained (`back_faces`).
 #[allow(clippy::too_many_arguments)]
 pub fn traced_cache(
     surfels: &Surfels,
@@ -151,8 +155,9 @@ pub fn traced_cache(
     sample_factor: usize,
     bounces: usize,
     env_importance: f32,
+    back_faces: TraceBackFaces,
 ) -> crate::Result<IncidentCache> {
-    let tracer = Tracer::build(surfels, &trace_settings());
+    let tracer = Tracer::build(surfels, &trace_settings_with(back_faces));
     let split = SplitSum::new(env)?;
     let env_s = env.box_downsample(sample_factor.max(1));
     let mut cache = IncidentCache::default();
@@ -226,6 +231,7 @@ pub fn finetune(
                 cfg.sample_factor,
                 cfg.bounces,
                 cfg.env_importance,
+                cfg.back_faces,
             )?;
             &traced
         }
@@ -249,7 +255,7 @@ pub fn finetune(
         roughness_logits: 0.0,
     };
     let mut adam = SurfelAdam::new(surfels, lr);
-    let tracer = Tracer::build(surfels, &trace_settings());
+    let tracer = Tracer::build(surfels, &trace_settings_with(cfg.back_faces));
     let rc = RcSettings {
         surfels: cfg.rc_surfels,
         rays: cfg.rc_rays,
@@ -382,6 +388,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 sample_factor: crate::train::inverse::sample_factor(&cfg),
                 bounces: args.bounces,
                 env_importance: args.env_importance,
+                back_faces: cfg.trace_back_faces,
                 seed: args.seed,
             };
             let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true, None)?;
@@ -456,8 +463,20 @@ mod tests {
         let mut mats = MaterialView::default();
         mats.update(&s);
         // A constant map has no peaks to sample: any share gives the Fibonacci directions.
-        let traced =
-            |share| traced_cache(&s, &mats, &env, 64, RayStart::offset_only(1e-3), 5, 1, TRACED_BOUNCES, share);
+        let traced = |share| {
+            traced_cache(
+                &s,
+                &mats,
+                &env,
+                64,
+                RayStart::offset_only(1e-3),
+                5,
+                1,
+                TRACED_BOUNCES,
+                share,
+                TraceBackFaces::Cull,
+            )
+        };
         let cache = traced(0.0).unwrap();
         let also = traced(ENV_IMPORTANCE).unwrap();
         assert!(also.sample_weights.is_empty() && also.dirs == cache.dirs);
@@ -501,9 +520,19 @@ mod tests {
         let mut mats = MaterialView::default();
         mats.update(&s);
         let direct = |samples: usize, share: f32| -> Vec<f32> {
-            let cache =
-                traced_cache(&s, &mats, &env, samples, RayStart::offset_only(1e-3), 7, 1, TRACED_BOUNCES, share)
-                    .unwrap();
+            let cache = traced_cache(
+                &s,
+                &mats,
+                &env,
+                samples,
+                RayStart::offset_only(1e-3),
+                7,
+                1,
+                TRACED_BOUNCES,
+                share,
+                TraceBackFaces::Cull,
+            )
+            .unwrap();
             let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
             let (mut d, mut i) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);
             shade_surfels(&inp, &env, &mut d, &mut i).unwrap();
@@ -589,7 +618,7 @@ mod tests {
         env.texels[4 * 32 + 9] = [900.0, 800.0, 700.0];
         let start = RayStart { offset: 1e-3, skip_margin: Some(0.02) };
         let (samples, seed, factor) = (8, 11, 2);
-        let tracer = Tracer::build(&s, &trace_settings());
+        let tracer = Tracer::build(&s, &crate::train::inverse::trace_settings());
         let split = SplitSum::new(&env).unwrap();
         let mut radiance: Vec<f32> = (0..s.len())
             .flat_map(|i| {
@@ -604,7 +633,8 @@ mod tests {
         let mut previous: Option<Vec<[f32; 3]>> = None;
         for bounces in 1..=3 {
             reference.refresh_with(&tracer, &s, samples, start, seed, Some(&radiance));
-            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces, 0.5).unwrap();
+            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces, 0.5, TraceBackFaces::Cull)
+                .unwrap();
             assert_eq!(fast.sample_weights, reference.sample_weights);
             assert_eq!(fast.dirs, reference.dirs);
             assert_eq!(fast.visibility, reference.visibility);

@@ -532,6 +532,7 @@ fn eval_relight(
                     factor,
                     bounces,
                     args.relight_env_importance,
+                    cfg.trace_back_faces,
                 )?;
                 light_cache = Some(cache.clone());
                 traced_scene = Some(crate::pbr_scene::PbrScene {
@@ -546,6 +547,7 @@ fn eval_relight(
                     ray_start: start,
                     specular_rays: crate::pbr_scene::RENDER_RAYS_FACTOR * cfg.specular_rays,
                     seed: cfg.seed,
+                    back_faces: cfg.trace_back_faces,
                 });
             } else {
                 let settings = FinetuneSettings {
@@ -558,6 +560,7 @@ fn eval_relight(
                     sample_factor: crate::train::inverse::sample_factor(cfg),
                     bounces: args.relight_bounces,
                     env_importance: args.relight_env_importance,
+                    back_faces: cfg.trace_back_faces,
                     seed: cfg.seed,
                 };
                 finetune(&mut surfels, &mats, &env, &cameras, &settings, true, light_cache.as_ref())?;

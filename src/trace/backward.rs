@@ -427,7 +427,10 @@ impl Ctx<'_> {
             let (tu, tv, nrm) = (rot[0], rot[1], rot[2]);
             let (sc, op, mu) = (geo.scale, geo.opacity, geo.mean);
             let b = dot(nrm, d);
-            let sign = if two_sided && b > 0.0 { -1.0 } else { 1.0 };
+            let back = two_sided && b > 0.0;
+            let sign = if back { -1.0 } else { 1.0 };
+            // A dark back face's payload is zero: it only occludes.
+            let dark = back && tracer.settings.dark_back_faces;
             let n_eff = nrm.map(|x| sign * x);
             let wv = [mu[0] - o[0], mu[1] - o[1], mu[2] - o[2]];
             let a = dot(nrm, wv);
@@ -448,7 +451,19 @@ impl Ctx<'_> {
             }
             let rec_stride = self.stride;
             let rec = buf.record(i, rec_stride);
-            if use_features {
+            if dark {
+                // Zero payload: only the occlusion term Σ_{k>j} T_k α_k x_k / (1 − α_j) is left.
+                if use_features {
+                    for c in 0..ch {
+                        let vf = if v_fo.is_empty() { 0.0 } else { v_fo[c] };
+                        v_alpha -= vf * sfeat[c] * inv;
+                    }
+                } else {
+                    for c in 0..3 {
+                        v_alpha -= g.v_radiance[c] * s_rad[c] * inv;
+                    }
+                }
+            } else if use_features {
                 let f = &self.fdata[i * ch..(i + 1) * ch];
                 for c in 0..ch {
                     let vf = if v_fo.is_empty() { 0.0 } else { v_fo[c] };

@@ -308,18 +308,23 @@ fn trace_one(
         Some((data, ch)) => prefetch_all(&data[i as usize * ch..][..ch]),
         None => prefetch_all(&surfels.sh[i as usize][..ncoef]),
     };
+    let dark_back = two_sided && tracer.settings.dark_back_faces;
     let t_final = march(tracer, &r, hint, |h, trans| {
         let w = trans * h.alpha;
         let i = h.index as usize;
+        let n = tracer.slot_normal(h.slot);
+        let back = two_sided && n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0;
         match feat.as_mut() {
             Some((data, ch, of)) => {
-                let f = &data[i * *ch..(i + 1) * *ch];
-                for c in 0..*ch {
-                    of[c] += w * f[c];
+                if !(dark_back && back) {
+                    let f = &data[i * *ch..(i + 1) * *ch];
+                    for c in 0..*ch {
+                        of[c] += w * f[c];
+                    }
                 }
             }
             None => {
-                let c = sh_colour(&surfels.sh[i], &basis, ncoef);
+                let c = if dark_back && back { [0.0; 3] } else { sh_colour(&surfels.sh[i], &basis, ncoef) };
                 if let Some(rec) = record.as_deref_mut() {
                     rec.push(RecordedHit { hit: *h, trans, colour: c });
                 }
@@ -330,8 +335,7 @@ fn trace_one(
             }
         }
         o.depth += w * h.t;
-        let n = tracer.slot_normal(h.slot);
-        let s = if two_sided && n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0 { -w } else { w };
+        let s = if back { -w } else { w };
         for a in 0..3 {
             o.normal[a] += s * n[a];
         }

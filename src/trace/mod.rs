@@ -44,6 +44,10 @@ pub struct TraceSettings {
     pub min_transmittance: f32,
     /// Flip back faces instead of culling them (plain 2DGS); default culls (normals point out).
     pub two_sided: bool,
+    /// With `two_sided`: back faces still occlude (α, depth, flipped normal) but carry no
+    /// payload (zero radiance, zero features). Surfels no camera saw may face the wrong way:
+    /// culled, they let light through; composited, their unobserved SH colours add light.
+    pub dark_back_faces: bool,
     /// Hits at t ≤ t_min are ignored: the self-intersection offset for rays leaving a surface.
     pub t_min: f32,
     /// Hits beyond t_max are ignored.
@@ -63,6 +67,7 @@ impl Default for TraceSettings {
             chunk: 32,
             min_transmittance: 0.03,
             two_sided: false,
+            dark_back_faces: false,
             t_min: 1e-4,
             t_max: f32::INFINITY,
             rebuild_ratio: 1.5,
@@ -102,7 +107,8 @@ pub struct Features<'a> {
 /// What one ray returns.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct RayOutput {
-    /// Σ T_j α_j c_j with c_j = max(SH_j(dir) + 0.5, 0); zero when features are traced instead.
+    /// Σ T_j α_j c_j with c_j = max(SH_j(dir) + 0.5, 0) (0 for dark back faces); zero when
+    /// features are traced instead.
     pub radiance: [f32; 3],
     /// Final transmittance Π (1 − α_j) (alpha = 1 − T).
     pub transmittance: f32,

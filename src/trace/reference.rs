@@ -113,7 +113,9 @@ pub fn trace_ref(s: &Surfels, ray: &Ray, settings: &TraceSettings, features: Opt
     for h in hits {
         let i = h.index;
         let w = out.transmittance * h.alpha;
+        let dark = settings.two_sided && settings.dark_back_faces && h.cos > 0.0;
         match features {
+            _ if dark => {}
             Some((f, ch)) => {
                 for c in 0..ch {
                     out.features[c] += w * f[i * ch + c] as f64;

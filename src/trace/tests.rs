@@ -493,16 +493,24 @@ fn check(name: &str, analytic: f32, fd: f64) {
 }
 
 fn fd_check(seed: u64, two_sided: bool, grazing: bool, channels: usize) {
-    fd_check_with(seed, two_sided, grazing, channels, false, None);
+    fd_check_with(seed, two_sided, grazing, channels, |_| {}, None);
 }
 
 /// `skip_z`: every ray skips the surfels whose centre lies below that height.
-fn fd_check_with(seed: u64, two_sided: bool, grazing: bool, channels: usize, linear: bool, skip_z: Option<f32>) {
+/// `tweak` adjusts the settings (linear radiance, dark back faces).
+fn fd_check_with(
+    seed: u64,
+    two_sided: bool,
+    grazing: bool,
+    channels: usize,
+    tweak: fn(&mut TraceSettings),
+    skip_z: Option<f32>,
+) {
     let (s, mut rays, mut settings) = fd_scene(seed, two_sided, grazing);
     if let Some(z) = skip_z {
         rays.iter_mut().for_each(|r| r.skip_below = [0.0, 0.0, 1.0, z]);
     }
-    settings.linear_radiance = linear;
+    tweak(&mut settings);
     let mut rng = Pcg64::seed_from_u64(seed + 77);
     let feats: Vec<f32> = (0..s.len() * channels).map(|_| rng.random_range(-1.0..1.0f32)).collect();
     let fopt = (channels > 0).then_some((&feats[..], channels));
@@ -605,8 +613,8 @@ fn gradients_match_finite_differences() {
 /// others' gradients still match, the skipped one gets none.
 #[test]
 fn gradients_match_finite_differences_with_a_skip_plane() {
-    fd_check_with(5, false, false, 0, true, Some(1.25));
-    fd_check_with(6, true, false, 2, false, Some(1.25));
+    fd_check_with(5, false, false, 0, |s| s.linear_radiance = true, Some(1.25));
+    fd_check_with(6, true, false, 2, |_| {}, Some(1.25));
 }
 
 /// Skip planes of rays leaving a surfel (its tangent plane raised by a margin, some below it)
@@ -649,8 +657,49 @@ fn gradients_match_finite_differences_two_sided_and_grazing() {
 
 #[test]
 fn gradients_match_finite_differences_with_linear_radiance() {
-    fd_check_with(7, false, false, 0, true, None);
-    fd_check_with(8, true, true, 0, true, None);
+    fd_check_with(7, false, false, 0, |s| s.linear_radiance = true, None);
+    fd_check_with(8, true, true, 0, |s| s.linear_radiance = true, None);
+}
+
+/// Dark back faces (the scene's odd surfels face away): their own payload terms vanish, their
+/// occlusion of the hits behind them keeps its gradient; SH, linear radiance and features.
+#[test]
+fn gradients_match_finite_differences_with_dark_back_faces() {
+    fd_check_with(9, true, false, 0, |s| s.dark_back_faces = true, None);
+    fd_check_with(10, true, true, 0, |s| (s.dark_back_faces, s.linear_radiance) = (true, true), None);
+    fd_check_with(11, true, false, 3, |s| s.dark_back_faces = true, None);
+}
+
+/// Dark back faces against brute force, from inside and outside a shell (the rays meet its far
+/// side from behind): the same hits and occlusion as two-sided tracing, less radiance.
+#[test]
+fn dark_back_faces_match_brute_force() {
+    let s = shell_scene(900, 61);
+    let rays = leaving_rays(&s, 800, 62);
+    let two = TraceSettings { two_sided: true, linear_radiance: true, min_transmittance: 1e-4, ..Default::default() };
+    let dark = TraceSettings { dark_back_faces: true, ..two.clone() };
+    compare_with_reference(&s, &rays, &dark, None);
+    compare_with_reference(&s, &rays, &TraceSettings { min_transmittance: 0.03, ..dark.clone() }, None);
+    let mut rng = Pcg64::seed_from_u64(63);
+    let feats: Vec<f32> = (0..s.len() * 2).map(|_| rng.random_range(0.0..1.0f32)).collect();
+    compare_with_reference(&s, &rays, &TraceSettings { chunk: 4, ..dark.clone() }, Some((&feats, 2)));
+    // Without two-sided tracing the switch does nothing.
+    let culled = TraceSettings { two_sided: false, ..dark.clone() };
+    compare_with_reference(&s, &rays, &culled, None);
+    let (mut darker, mut unchanged) = (0, 0);
+    for ray in &rays {
+        let (a, b) = (trace_ref(&s, ray, &two, None), trace_ref(&s, ray, &dark, None));
+        assert_eq!(a.hits, b.hits, "dark back faces must occlude as two-sided ones do");
+        assert!((a.transmittance - b.transmittance).abs() < 1e-12 && (a.depth - b.depth).abs() < 1e-12);
+        let (ra, rb) = (a.radiance.iter().sum::<f64>(), b.radiance.iter().sum::<f64>());
+        assert!(rb <= ra + 1e-12);
+        if rb < ra - 1e-6 {
+            darker += 1;
+        } else if !a.hits.is_empty() {
+            unchanged += 1;
+        }
+    }
+    assert!(darker * 10 > rays.len() && unchanged > 0, "darker {darker}, unchanged {unchanged} of {}", rays.len());
 }
 
 #[test]

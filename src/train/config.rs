@@ -31,6 +31,19 @@ pub enum Background {
     Black,
 }
 
+/// How the PBR stages' traced rays (visibility, indirect light, consistency) treat back faces.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TraceBackFaces {
+    /// Culled: normals point outward (RadioGS).
+    #[default]
+    Cull,
+    /// Composited with the normal flipped (plain 2DGS).
+    TwoSided,
+    /// As two-sided, but a back face adds no radiance: it only blocks the light behind it.
+    Dark,
+}
+
 /// How the inverse stage's PBR colour gets its specular lobe.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -453,6 +466,13 @@ pub struct TrainConfig {
     /// the indirect light 2–3 dB worse; see BENCHMARKS).
     #[arg(long, default_value_t = 0.013)]
     pub ray_skip_margin: f32,
+    /// Back faces of the PBR stages' traced rays: `cull` (RadioGS), `two-sided` or `dark`
+    /// (they block light but add none). Culled, surfels no camera saw that face the wrong way
+    /// leak light into shadows; the others trade indirect light for albedo (BENCHMARKS.md,
+    /// sessions 66–67). Training, eval and relighting of a run use its setting.
+    #[arg(long, value_enum, default_value_t = TraceBackFaces::Cull)]
+    #[serde(default)]
+    pub trace_back_faces: TraceBackFaces,
     /// The inverse stage drops the geometry's surfels whose largest blend weight (α T) over
     /// every training pixel is below this when it starts (0 = keep all, the default): hidden
     /// layers and faint fringes no view shows, which every later render and trace pays for

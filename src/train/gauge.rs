@@ -185,8 +185,8 @@ pub fn fit(cfg: &TrainConfig, state: &InverseState, images: &TrainImages) -> Gau
         Specular::SplitSum => Some(SplitSum::new(&env).expect("the learned env is a valid map")),
         Specular::Mc | Specular::Traced => None,
     };
-    let tracer =
-        (cfg.specular == Specular::Traced).then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings()));
+    let tracer = (cfg.specular == Specular::Traced)
+        .then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings_with(cfg.trace_back_faces)));
     let settings = RasterSettings {
         window: cfg.window,
         filter_inv_square: cfg.filter_inv_square,

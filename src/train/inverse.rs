@@ -45,7 +45,7 @@ use crate::shade::traced_specular::{SpecularSamples, TracedSpecular};
 use crate::surfels::{Surfels, albedo_to_logit, logit};
 use crate::trace::{TraceSettings, Tracer};
 use crate::train::checkpoint::Checkpoint;
-use crate::train::config::{Background, Specular, TrainConfig};
+use crate::train::config::{Background, Specular, TraceBackFaces, TrainConfig};
 use crate::train::interrupt;
 use anyhow::Context;
 use rand::RngExt;
@@ -71,7 +71,17 @@ pub fn sample_factor(cfg: &TrainConfig) -> usize {
 /// The tracer settings of the PBR stages (RadioGS: stop at T < 0.03, cull back faces;
 /// indirect light composited as linear radiance).
 pub fn trace_settings() -> TraceSettings {
-    TraceSettings { linear_radiance: true, ..TraceSettings::default() }
+    trace_settings_with(TraceBackFaces::Cull)
+}
+
+/// [`trace_settings`] with back faces as `back_faces` says (`--trace-back-faces`).
+pub fn trace_settings_with(back_faces: TraceBackFaces) -> TraceSettings {
+    let (two_sided, dark_back_faces) = match back_faces {
+        TraceBackFaces::Cull => (false, false),
+        TraceBackFaces::TwoSided => (true, false),
+        TraceBackFaces::Dark => (true, true),
+    };
+    TraceSettings { linear_radiance: true, two_sided, dark_back_faces, ..TraceSettings::default() }
 }
 
 /// Everything an inverse run holds.
@@ -857,7 +867,7 @@ pub fn objective_per_view(cfg: &TrainConfig, dataset: &Dataset, seed: u64) -> an
     let ckpt_path = checkpoint_path(&cfg.out);
     let c = Checkpoint::load(&ckpt_path)?;
     let mut state = InverseState::from_checkpoint(&ckpt_path, &c, cfg)?;
-    let tracer = Tracer::build(&state.surfels, &trace_settings());
+    let tracer = Tracer::build(&state.surfels, &trace_settings_with(cfg.trace_back_faces));
     state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, cfg.ray_start(state.extent), seed);
     let env = state.env();
     let env_s = env.box_downsample(sample_factor(cfg));
@@ -962,7 +972,7 @@ pub fn run_until(
     };
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
-    let mut tracer = Tracer::build(&state.surfels, &trace_settings());
+    let mut tracer = Tracer::build(&state.surfels, &trace_settings_with(cfg.trace_back_faces));
     let start = cfg.ray_start(state.extent);
     let mut times = InverseTimes::default();
     follow_light_peaks(cfg, &mut state);
@@ -1054,7 +1064,7 @@ pub fn run_until(
         let t_fit = Instant::now();
         tracer.refit(&state.surfels);
         if tracer.needs_rebuild() {
-            tracer = Tracer::build(&state.surfels, &trace_settings());
+            tracer = Tracer::build(&state.surfels, &trace_settings_with(cfg.trace_back_faces));
         }
         times.tracer_refit += t_fit.elapsed().as_secs_f64();
         if it % check_every == 0 && it < cfg.inverse_iters {
@@ -1377,5 +1387,32 @@ mod tests {
             let want = lambert + 0.5 * (before[c] - lambert);
             assert!((sh.features[c] - want).abs() < 1e-5, "{} vs {want}", sh.features[c]);
         }
+    }
+
+    /// `--trace-back-faces` end to end through the incident cache: a floor surfel under a
+    /// large opaque surfel that faces up (away from it). Culled, the floor sees the whole sky;
+    /// two-sided, the upper surfel blocks it and adds its colour; dark, it blocks it and adds
+    /// nothing.
+    #[test]
+    fn traced_back_faces_cull_composite_or_only_block() {
+        let mut s = Surfels::default();
+        let up = crate::surfels::quat_with_normal([0.0, 0.0, 1.0]);
+        s.push([0.0; 3], [0.05, 0.05], up, 0.9, [0.5; 3], [0.5; 3], 0.5);
+        s.push([0.0, 0.0, 0.3], [2.0, 2.0], up, 0.95, [0.9, 0.6, 0.3], [0.5; 3], 0.5);
+        let samples = 64;
+        let cache_of = |mode: TraceBackFaces| {
+            let tracer = Tracer::build(&s, &trace_settings_with(mode));
+            let mut cache = IncidentCache::default();
+            cache.refresh(&tracer, &s, samples, crate::shade::incident::RayStart::offset_only(1e-3), 5);
+            let vis: f32 = cache.visibility[..samples].iter().sum::<f32>() / samples as f32;
+            let ind: f32 = cache.indirect[..samples].iter().map(|c| c[0]).sum::<f32>() / samples as f32;
+            (vis, ind)
+        };
+        let (cull, two, dark) =
+            (cache_of(TraceBackFaces::Cull), cache_of(TraceBackFaces::TwoSided), cache_of(TraceBackFaces::Dark));
+        assert!(cull.0 > 0.999 && cull.1 == 0.0, "culled: {cull:?}");
+        assert!(two.0 < 0.5 && two.1 > 0.1, "two-sided: {two:?}");
+        assert_eq!(dark.0, two.0, "dark back faces block as two-sided ones do");
+        assert_eq!(dark.1, 0.0, "dark back faces add no light");
     }
 }

@@ -33,7 +33,16 @@ fn main() -> anyhow::Result<()> {
     let scenes: Vec<PbrScene> = seeds
         .iter()
         .map(|&seed| {
-            let mut s = PbrScene::new(surfels.clone(), env.clone(), cfg.pbr_samples, start, cfg.window, factor, seed);
+            let mut s = PbrScene::new(
+                surfels.clone(),
+                env.clone(),
+                cfg.pbr_samples,
+                start,
+                cfg.window,
+                factor,
+                seed,
+                cfg.trace_back_faces,
+            );
             s.specular = cfg.specular;
             s.filter_inv_square = cfg.filter_inv_square;
             s

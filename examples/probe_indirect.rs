@@ -23,7 +23,8 @@ fn main() -> anyhow::Result<()> {
     let env = radiogs::envmap::EnvMap::load(&run.join("envmap.exr"))?;
     let factor = radiogs::train::inverse::sample_factor(&cfg);
     let start = cfg.ray_start(extent);
-    let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed);
+    let mut scene =
+        PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, cfg.trace_back_faces);
     scene.specular = cfg.specular;
     let readme = scene_readme::load(&data)?;
     let ds = Dataset::open(&data)?;

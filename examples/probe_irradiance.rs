@@ -80,7 +80,8 @@ fn main() -> anyhow::Result<()> {
     };
     let shader_env = env.box_downsample(radiogs::train::inverse::sample_factor(&cfg));
     let start = cfg.ray_start(extent);
-    let scene = PbrScene::new(surfels, env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed);
+    let scene =
+        PbrScene::new(surfels, env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed, cfg.trace_back_faces);
     println!("env {} × {} (shader reads {} × {})", env.width, env.height, shader_env.width, shader_env.height);
     let mut irradiance: BTreeMap<String, (f64, [[f64; 3]; STEPS])> = BTreeMap::new();
     // Per face: Σ opacity · our normal, Σ opacity · tilt from the true normal (degrees).

@@ -31,7 +31,8 @@ fn main() -> anyhow::Result<()> {
     let env_path = readme.train_env_path(&data);
     let true_env = radiogs::envmap::EnvMap::load(&env_path)?;
     let start = cfg.ray_start(extent);
-    let scene = PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed);
+    let scene =
+        PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed, cfg.trace_back_faces);
     probe_run::print_cache(scene.surfels.len(), scene.cache.samples, start);
     let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
     let spheres: Vec<usize> =

@@ -68,22 +68,9 @@ pub struct PbrImages {
 
 impl PbrScene {
     /// A scene from its parts; traces the incident cache (S samples, where rays start in scene
-    /// units) with back faces culled (RadioGS).
-    pub fn new(
-        surfels: Surfels,
-        env: EnvMap,
-        samples: usize,
-        start: crate::shade::incident::RayStart,
-        window: usize,
-        sample_factor: usize,
-        seed: u64,
-    ) -> PbrScene {
-        Self::with_back_faces(surfels, env, samples, start, window, sample_factor, seed, TraceBackFaces::Cull)
-    }
-
-    /// [`PbrScene::new`] with traced back faces as `back_faces` says.
+    /// units; back faces as `back_faces` says, RadioGS: cull).
     #[allow(clippy::too_many_arguments)]
-    pub fn with_back_faces(
+    pub fn new(
         surfels: Surfels,
         env: EnvMap,
         samples: usize,
@@ -176,16 +163,8 @@ impl PbrScene {
             }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        let mut scene = PbrScene::with_back_faces(
-            surfels,
-            env,
-            cfg.pbr_samples,
-            start,
-            cfg.window,
-            factor,
-            cfg.seed,
-            cfg.trace_back_faces,
-        );
+        let mut scene =
+            PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, cfg.trace_back_faces);
         scene.draw_from_light_peaks(cfg.env_importance_inverse);
         scene.specular = cfg.specular;
         scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;

@@ -80,7 +80,16 @@ fn write_views(dir: &Path, scene: &PbrScene, cameras: &[Camera], angle: f32) {
 fn make_dataset(dir: &Path) -> Surfels {
     let gt = plane();
     let env = EnvMap::constant(32, 16, [LIGHT; 3]);
-    let scene = PbrScene::new(gt.clone(), env, 64, radiogs::shade::incident::RayStart::offset_only(1e-3), 8, 1, 1);
+    let scene = PbrScene::new(
+        gt.clone(),
+        env,
+        64,
+        radiogs::shade::incident::RayStart::offset_only(1e-3),
+        8,
+        1,
+        1,
+        radiogs::train::config::TraceBackFaces::Cull,
+    );
     let angle = 0.9f32;
     let cameras: Vec<Camera> = (0..4)
         .map(|k| {
@@ -402,7 +411,8 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
     // Fixed point: SH = the Lambert-dominated radiance along the normal, the indirect light
     // traced from the previous SH.
     for _ in 0..4 {
-        let scene = PbrScene::new(gt.clone(), env.clone(), 64, start, 8, 1, 1);
+        let scene =
+            PbrScene::new(gt.clone(), env.clone(), 64, start, 8, 1, 1, radiogs::train::config::TraceBackFaces::Cull);
         let n = gt.len();
         let normal: Vec<[f32; 3]> = (0..n).map(|i| gt.normal(i)).collect();
         let rough = vec![0.9f32; n];
@@ -415,7 +425,7 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
         }
     }
     let data = temp_dir("gauge-data");
-    let scene = PbrScene::new(gt.clone(), env, 64, start, 8, 1, 1);
+    let scene = PbrScene::new(gt.clone(), env, 64, start, 8, 1, 1, radiogs::train::config::TraceBackFaces::Cull);
     let angle = 0.9f32;
     let cameras: Vec<Camera> = (0..4)
         .map(|k| {

@@ -375,7 +375,6 @@ impl Ctx<'_> {
         let r = PreparedRay::from_ray(ray);
         let (dh, dlen) = unit(ray.dir);
         let basis = sh::basis(dh);
-        let two_sided = tracer.settings.two_sided;
         let ch = self.channels;
         let use_features = self.use_features;
         let mut cast = std::mem::take(&mut buf.hits);
@@ -427,10 +426,12 @@ impl Ctx<'_> {
             let (tu, tv, nrm) = (rot[0], rot[1], rot[2]);
             let (sc, op, mu) = (geo.scale, geo.opacity, geo.mean);
             let b = dot(nrm, d);
-            let back = two_sided && b > 0.0;
+            let (back, dark) = match tracer.back_face(h.slot) {
+                Some(dark) if b > 0.0 => (true, dark),
+                _ => (false, false),
+            };
             let sign = if back { -1.0 } else { 1.0 };
             // A dark back face's payload is zero: it only occludes.
-            let dark = back && tracer.settings.dark_back_faces;
             let n_eff = nrm.map(|x| sign * x);
             let wv = [mu[0] - o[0], mu[1] - o[1], mu[2] - o[2]];
             let a = dot(nrm, wv);

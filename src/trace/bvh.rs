@@ -54,6 +54,8 @@ pub(crate) struct Prim {
     pub rho_max: f32,
     /// The surfel's index in `Surfels`.
     pub index: u32,
+    /// Also hit from behind (a dark occluder, `TraceSettings::back_occluders`).
+    pub back_occluder: bool,
 }
 
 /// Width of the traversed BVH, and the lanes of a leaf block.
@@ -73,6 +75,8 @@ pub(crate) struct PrimBlock {
     pub rho_max: [f32; W],
     /// Surfel index per lane (u32::MAX in unused lanes).
     pub index: [u32; W],
+    /// Bit l set when lane l is a back occluder (hit from behind too, when tracing one-sided).
+    pub back_lanes: u32,
 }
 
 impl PrimBlock {
@@ -84,6 +88,7 @@ impl PrimBlock {
         opacity: [0.0; W],
         rho_max: [-1.0; W],
         index: [u32::MAX; W],
+        back_lanes: 0,
     };
 
     fn set(&mut self, lane: usize, p: &Prim) {
@@ -96,6 +101,7 @@ impl PrimBlock {
         self.opacity[lane] = p.opacity;
         self.rho_max[lane] = p.rho_max;
         self.index[lane] = p.index;
+        self.back_lanes = (self.back_lanes & !(1 << lane)) | ((p.back_occluder as u32) << lane);
     }
 
     fn lanes(&self) -> impl Iterator<Item = usize> + '_ {
@@ -186,6 +192,10 @@ impl NormalCone {
         }
         if !any {
             return NormalCone::EMPTY;
+        }
+        // A back occluder is hit from either side: no direction can skip it.
+        if hittable().any(|l| b.back_lanes & (1 << l) != 0) {
+            return NormalCone { axis: [0.0; 3], angle: std::f32::consts::PI };
         }
         let Some(axis) = normalised(sum) else { return NormalCone { axis: [0.0; 3], angle: std::f32::consts::PI } };
         let min_dot = hittable().map(|l| dot(axis, normal(l))).fold(1.0f32, f32::min);
@@ -329,7 +339,7 @@ fn area(b: &Aabb) -> f32 {
 }
 
 /// Bounds of surfel `i`'s α ≥ 1/255 ellipse, and its packed hit data.
-fn surfel_bounds(s: &Surfels, i: usize) -> (Aabb, Prim) {
+fn surfel_bounds(s: &Surfels, i: usize, back_occluders: Option<&[bool]>) -> (Aabb, Prim) {
     let r = rotation_from_quat(s.quats[i]);
     let sc = s.scale(i);
     let o = sigmoid(s.opacity_logits[i]);
@@ -343,6 +353,7 @@ fn surfel_bounds(s: &Surfels, i: usize) -> (Aabb, Prim) {
         opacity: o,
         rho_max: if o >= ALPHA_MIN { 2.0 * (o / ALPHA_MIN).ln() } else { -1.0 },
         index: i as u32,
+        back_occluder: back_occluders.is_some_and(|b| b[i]),
     };
     if !(o >= ALPHA_MIN) {
         return (EMPTY, prim);
@@ -496,11 +507,20 @@ fn build_subtree(idx: &mut [u32], boxes: &[Aabb], cents: &[[f32; 3]], prim_base:
     nodes
 }
 
+/// The settings' back-occluder flags, which must be one per surfel.
+fn back_occluders<'a>(surfels: &Surfels, settings: &'a TraceSettings) -> Option<&'a [bool]> {
+    let flags = settings.back_occluders.as_deref()?;
+    assert_eq!(flags.len(), surfels.len(), "trace: back_occluders must hold one flag per surfel");
+    Some(flags)
+}
+
 impl Tracer {
     /// Build the BVH over all surfels (binned SAH).
     pub fn build(surfels: &Surfels, settings: &TraceSettings) -> Tracer {
         let n = surfels.len();
-        let (boxes, prims): (Vec<Aabb>, Vec<Prim>) = (0..n).into_par_iter().map(|i| surfel_bounds(surfels, i)).unzip();
+        let occluders = back_occluders(surfels, settings);
+        let (boxes, prims): (Vec<Aabb>, Vec<Prim>) =
+            (0..n).into_par_iter().map(|i| surfel_bounds(surfels, i, occluders)).unzip();
         let mut idx: Vec<u32> = (0..n as u32).collect();
         let mut nodes = if n == 0 { Vec::new() } else { build_subtree(&mut idx, &boxes, &surfels.means, 0, 0) };
         assert!(n < (1 << 28), "trace: {n} surfels exceed the BVH's 2^28 primitive limit");
@@ -533,11 +553,12 @@ impl Tracer {
         // Blocks and their boxes in parallel, then the leaves, then the interior nodes
         // bottom-up (children follow their parent).
         let mut block_boxes = vec![EMPTY; self.blocks.len()];
+        let occluders = back_occluders(surfels, &self.settings);
         self.blocks.par_iter_mut().zip(block_boxes.par_iter_mut()).for_each(|(block, bb)| {
             for lane in 0..W {
                 let i = block.index[lane];
                 if i != u32::MAX {
-                    let (b, p) = surfel_bounds(surfels, i as usize);
+                    let (b, p) = surfel_bounds(surfels, i as usize, occluders);
                     block.set(lane, &p);
                     *bb = union(bb, &b);
                 }
@@ -876,10 +897,15 @@ impl Tracer {
         let v = |a: &[f32; W]| f32x8::from(*a);
         let d = r.d.map(f32x8::splat);
         let zero = f32x8::ZERO;
-        // Facing: one-sided rays only hit faces with n·d < 0; two-sided any with n·d ≠ 0.
+        // Facing: one-sided rays only hit faces with n·d < 0 (and back occluders with
+        // n·d > 0); two-sided any with n·d ≠ 0.
         let b = v(&p.normal[0]) * d[0] + v(&p.normal[1]) * d[1] + v(&p.normal[2]) * d[2];
-        let facing = if self.settings.two_sided { b.simd_ne(zero) } else { b.simd_lt(zero) };
-        if facing.to_bitmask() == 0 {
+        let facing = if self.settings.two_sided {
+            b.simd_ne(zero).to_bitmask()
+        } else {
+            b.simd_lt(zero).to_bitmask() | (b.simd_gt(zero).to_bitmask() & p.back_lanes)
+        };
+        if facing == 0 {
             return;
         }
         let w: [f32x8; 3] = std::array::from_fn(|a| v(&p.mean[a]) - f32x8::splat(r.o[a]));
@@ -893,7 +919,7 @@ impl Tracer {
         let vv = v(&p.tv_s[0]) * q[0] + v(&p.tv_s[1]) * q[1] + v(&p.tv_s[2]) * q[2];
         let rho = u * u + vv * vv;
         let inside = rho.simd_le(v(&p.rho_max) * f32x8::splat(1.0 + 1e-5));
-        let mut mask = (facing & in_range & inside).to_bitmask();
+        let mut mask = facing & (in_range & inside).to_bitmask();
         if r.skips {
             let height = v(&p.mean[0]) * f32x8::splat(r.skip[0])
                 + v(&p.mean[1]) * f32x8::splat(r.skip[1])
@@ -960,6 +986,17 @@ impl Tracer {
         let (b, l) = (slot as usize / W, slot as usize % W);
         let p = &self.blocks[b];
         [p.normal[0][l], p.normal[1][l], p.normal[2][l]]
+    }
+
+    /// How a hit from behind (n·d > 0) on the primitive in `slot` composites: None when back
+    /// faces are culled, else Some(dark) — dark ones occlude but carry no payload.
+    #[inline]
+    pub(crate) fn back_face(&self, slot: u32) -> Option<bool> {
+        if self.settings.two_sided {
+            return Some(self.settings.dark_back_faces);
+        }
+        let (b, l) = (slot as usize / W, slot as usize % W);
+        (self.blocks[b].back_lanes & (1 << l) != 0).then_some(true)
     }
 
     /// Plain closest-hit traversal (nearest valid hit beyond t_min): the benchmark's baseline.

@@ -300,7 +300,6 @@ fn trace_one(
     let r = PreparedRay::from_ray(ray);
     let basis = sh::basis(unit(ray.dir).0);
     let mut o = RayOutput::default();
-    let two_sided = tracer.settings.two_sided;
     let linear = tracer.settings.linear_radiance;
     // The payload loads are scattered: ask for each hit's as the traversal finds it.
     let feat_data: Option<(&[f32], usize)> = feat.as_ref().map(|(data, ch, _)| (*data, *ch));
@@ -308,15 +307,19 @@ fn trace_one(
         Some((data, ch)) => prefetch_all(&data[i as usize * ch..][..ch]),
         None => prefetch_all(&surfels.sh[i as usize][..ncoef]),
     };
-    let dark_back = two_sided && tracer.settings.dark_back_faces;
     let t_final = march(tracer, &r, hint, |h, trans| {
         let w = trans * h.alpha;
         let i = h.index as usize;
         let n = tracer.slot_normal(h.slot);
-        let back = two_sided && n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0;
+        // From behind: the hit is a back face (two-sided or a back occluder), maybe dark.
+        let from_behind = n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0;
+        let (back, dark) = match tracer.back_face(h.slot) {
+            Some(dark) if from_behind => (true, dark),
+            _ => (false, false),
+        };
         match feat.as_mut() {
             Some((data, ch, of)) => {
-                if !(dark_back && back) {
+                if !dark {
                     let f = &data[i * *ch..(i + 1) * *ch];
                     for c in 0..*ch {
                         of[c] += w * f[c];
@@ -324,7 +327,7 @@ fn trace_one(
                 }
             }
             None => {
-                let c = if dark_back && back { [0.0; 3] } else { sh_colour(&surfels.sh[i], &basis, ncoef) };
+                let c = if dark { [0.0; 3] } else { sh_colour(&surfels.sh[i], &basis, ncoef) };
                 if let Some(rec) = record.as_deref_mut() {
                     rec.push(RecordedHit { hit: *h, trans, colour: c });
                 }

@@ -48,6 +48,11 @@ pub struct TraceSettings {
     /// payload (zero radiance, zero features). Surfels no camera saw may face the wrong way:
     /// culled, they let light through; composited, their unobserved SH colours add light.
     pub dark_back_faces: bool,
+    /// One-sided tracing (`two_sided` false): the surfels flagged here (indexed as the surfels,
+    /// of their length) are also hit from behind, as dark occluders like `dark_back_faces`'.
+    /// For surfels no camera saw, whose orientation is a guess: culled, a wrongly oriented one
+    /// lets light through; these block it without adding unobserved colour.
+    pub back_occluders: Option<std::sync::Arc<[bool]>>,
     /// Hits at t ≤ t_min are ignored: the self-intersection offset for rays leaving a surface.
     pub t_min: f32,
     /// Hits beyond t_max are ignored.
@@ -68,6 +73,7 @@ impl Default for TraceSettings {
             min_transmittance: 0.03,
             two_sided: false,
             dark_back_faces: false,
+            back_occluders: None,
             t_min: 1e-4,
             t_max: f32::INFINITY,
             rebuild_ratio: 1.5,

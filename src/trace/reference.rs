@@ -64,7 +64,8 @@ pub fn all_hits(s: &Surfels, ray: &Ray, settings: &TraceSettings) -> Vec<(RefHit
         let op = 1.0 / (1.0 + (-(s.opacity_logits[i] as f64)).exp());
         let raw = op * (-0.5 * rho).exp();
         let alpha = raw.min(ALPHA_MAX as f64);
-        let facing = b < 0.0 || (settings.two_sided && b > 0.0);
+        let occluder = !settings.two_sided && settings.back_occluders.as_ref().is_some_and(|f| f[i]);
+        let facing = b < 0.0 || ((settings.two_sided || occluder) && b > 0.0);
         let sk = ray.skip_below.map(|x| x as f64);
         // A zero normal is no plane (whatever its offset), as in the fast path.
         let plane = sk[0] != 0.0 || sk[1] != 0.0 || sk[2] != 0.0;
@@ -113,7 +114,12 @@ pub fn trace_ref(s: &Surfels, ray: &Ray, settings: &TraceSettings, features: Opt
     for h in hits {
         let i = h.index;
         let w = out.transmittance * h.alpha;
-        let dark = settings.two_sided && settings.dark_back_faces && h.cos > 0.0;
+        let dark = h.cos > 0.0
+            && if settings.two_sided {
+                settings.dark_back_faces
+            } else {
+                settings.back_occluders.as_ref().is_some_and(|f| f[i])
+            };
         match features {
             _ if dark => {}
             Some((f, ch)) => {

@@ -702,6 +702,68 @@ fn dark_back_faces_match_brute_force() {
     assert!(darker * 10 > rays.len() && unchanged > 0, "darker {darker}, unchanged {unchanged} of {}", rays.len());
 }
 
+/// Back occluders in one-sided tracing: the scene's odd surfels face away; surfels 1 and 3 are
+/// flagged (hit from behind, dark), surfel 5 is not (culled). SH, linear radiance, features.
+#[test]
+fn gradients_match_finite_differences_with_back_occluders() {
+    fn flag_1_and_3(s: &mut TraceSettings) {
+        s.two_sided = false;
+        s.back_occluders = Some(std::sync::Arc::from([false, true, false, true, false, false].as_slice()));
+    }
+    fd_check_with(12, true, false, 0, flag_1_and_3, None);
+    fd_check_with(13, true, true, 0, |s| (flag_1_and_3(s), s.linear_radiance = true).1, None);
+    fd_check_with(14, true, false, 3, flag_1_and_3, None);
+}
+
+/// Back occluders against brute force on shells where a third of the surfels face inwards, from
+/// inside and outside: flagged surfels block from behind without colour, the rest cull; with
+/// every surfel flagged, one-sided tracing equals two-sided tracing with dark back faces.
+#[test]
+fn back_occluders_match_brute_force() {
+    let mut s = shell_scene(900, 71);
+    let mut rng = Pcg64::seed_from_u64(72);
+    let flags: Vec<bool> = (0..s.len()).map(|_| rng.random_range(0.0..1.0f32) < 0.4).collect();
+    for i in 0..s.len() {
+        if rng.random_range(0.0..1.0f32) < 0.33 {
+            let n = s.normal(i);
+            s.quats[i] = quat_with_normal(n.map(|x| -x));
+        }
+    }
+    let rays = leaving_rays(&s, 800, 73);
+    let culled = TraceSettings { linear_radiance: true, min_transmittance: 1e-4, ..Default::default() };
+    let some = TraceSettings { back_occluders: Some(flags.into()), ..culled.clone() };
+    compare_with_reference(&s, &rays, &some, None);
+    compare_with_reference(&s, &rays, &TraceSettings { min_transmittance: 0.03, chunk: 4, ..some.clone() }, None);
+    let feats: Vec<f32> = (0..s.len() * 2).map(|_| rng.random_range(0.0..1.0f32)).collect();
+    compare_with_reference(&s, &rays, &TraceSettings { chunk: 4, ..some.clone() }, Some((&feats, 2)));
+    // Flagged surfels add hits (never colour) to the culled trace; two-sided tracing ignores flags.
+    let mut more = 0;
+    for ray in &rays {
+        let (a, b) = (trace_ref(&s, ray, &culled, None), trace_ref(&s, ray, &some, None));
+        more += (b.hits.len() > a.hits.len()) as usize;
+        assert!(b.transmittance <= a.transmittance + 1e-12);
+    }
+    assert!(more * 10 > rays.len(), "back occluders added hits to only {more} of {} rays", rays.len());
+    let two = TraceSettings { two_sided: true, dark_back_faces: true, ..culled.clone() };
+    compare_with_reference(
+        &s,
+        &rays,
+        &TraceSettings { back_occluders: some.back_occluders.clone(), ..two.clone() },
+        None,
+    );
+    let all = TraceSettings { back_occluders: Some(vec![true; s.len()].into()), ..culled.clone() };
+    compare_with_reference(&s, &rays, &all, None);
+    let (tracer_all, tracer_two) = (Tracer::build(&s, &all), Tracer::build(&s, &two));
+    let (mut out_all, mut out_two) = (vec![RayOutput::default(); rays.len()], vec![RayOutput::default(); rays.len()]);
+    trace(&tracer_all, &s, &rays, None, &mut out_all, None);
+    trace(&tracer_two, &s, &rays, None, &mut out_two, None);
+    for (a, b) in out_all.iter().zip(&out_two) {
+        assert_eq!(a.transmittance, b.transmittance);
+        assert_eq!(a.radiance, b.radiance);
+        assert_eq!(a.normal, b.normal);
+    }
+}
+
 #[test]
 fn linear_radiance_matches_brute_force() {
     for seed in [21u64, 22] {

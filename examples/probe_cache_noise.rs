@@ -19,7 +19,8 @@ fn decode(c: f32) -> f64 {
 }
 
 fn main() -> anyhow::Result<()> {
-    let probe_run::ProbeRun { run, data, cfg, extent, surfels } = probe_run::from_args("probe_cache_noise")?;
+    let probe_run::ProbeRun { run, data, cfg, extent, surfels, back_faces } =
+        probe_run::from_args("probe_cache_noise")?;
     let env = radiogs::envmap::EnvMap::load(&run.join("envmap.exr"))?;
     let start = cfg.ray_start(extent);
     let factor = radiogs::train::inverse::sample_factor(&cfg);
@@ -41,7 +42,7 @@ fn main() -> anyhow::Result<()> {
                 cfg.window,
                 factor,
                 seed,
-                cfg.trace_back_faces,
+                back_faces.clone(),
             );
             s.specular = cfg.specular;
             s.filter_inv_square = cfg.filter_inv_square;

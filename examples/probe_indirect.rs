@@ -19,12 +19,11 @@ use radiogs::pbr_scene::PbrScene;
 use radiogs::trace::{Ray, RayOutput, Tracer, trace};
 
 fn main() -> anyhow::Result<()> {
-    let probe_run::ProbeRun { run, data, cfg, extent, surfels } = probe_run::from_args("probe_indirect")?;
+    let probe_run::ProbeRun { run, data, cfg, extent, surfels, back_faces } = probe_run::from_args("probe_indirect")?;
     let env = radiogs::envmap::EnvMap::load(&run.join("envmap.exr"))?;
     let factor = radiogs::train::inverse::sample_factor(&cfg);
     let start = cfg.ray_start(extent);
-    let mut scene =
-        PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, cfg.trace_back_faces);
+    let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, back_faces);
     scene.specular = cfg.specular;
     let readme = scene_readme::load(&data)?;
     let ds = Dataset::open(&data)?;

@@ -68,7 +68,8 @@ impl Tally {
 }
 
 fn main() -> anyhow::Result<()> {
-    let probe_run::ProbeRun { run, data, cfg, extent, surfels, .. } = probe_run::from_args("probe_irradiance")?;
+    let probe_run::ProbeRun { run, data, cfg, extent, surfels, back_faces, .. } =
+        probe_run::from_args("probe_irradiance")?;
     let readme = scene_readme::load(&data)?;
     let env_path = readme.train_env_path(&data);
     let run_env = run.join("envmap.exr");
@@ -80,8 +81,7 @@ fn main() -> anyhow::Result<()> {
     };
     let shader_env = env.box_downsample(radiogs::train::inverse::sample_factor(&cfg));
     let start = cfg.ray_start(extent);
-    let scene =
-        PbrScene::new(surfels, env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed, cfg.trace_back_faces);
+    let scene = PbrScene::new(surfels, env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed, back_faces);
     println!("env {} × {} (shader reads {} × {})", env.width, env.height, shader_env.width, shader_env.height);
     let mut irradiance: BTreeMap<String, (f64, [[f64; 3]; STEPS])> = BTreeMap::new();
     // Per face: Σ opacity · our normal, Σ opacity · tilt from the true normal (degrees).

@@ -26,13 +26,12 @@ use radiogs::pbr_scene::PbrScene;
 use radiogs::shade::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 
 fn main() -> anyhow::Result<()> {
-    let probe_run::ProbeRun { data, cfg, extent, surfels, .. } = probe_run::from_args("probe_visibility")?;
+    let probe_run::ProbeRun { data, cfg, extent, surfels, back_faces, .. } = probe_run::from_args("probe_visibility")?;
     let readme = scene_readme::load(&data)?;
     let env_path = readme.train_env_path(&data);
     let true_env = radiogs::envmap::EnvMap::load(&env_path)?;
     let start = cfg.ray_start(extent);
-    let scene =
-        PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed, cfg.trace_back_faces);
+    let scene = PbrScene::new(surfels, true_env.clone(), cfg.pbr_samples, start, cfg.window, 1, cfg.seed, back_faces);
     probe_run::print_cache(scene.surfels.len(), scene.cache.samples, start);
     let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
     let spheres: Vec<usize> =

@@ -14,9 +14,8 @@ use crate::shade::traced_specular::TracedSpecular;
 use crate::surfels::Surfels;
 use crate::trace::Tracer;
 use crate::train::config::Specular;
-use crate::train::config::TraceBackFaces;
 use crate::train::consistency::encode;
-use crate::train::inverse::{SpecularLobe, SurfelShading, VIEW_CHANNELS, trace_settings_with};
+use crate::train::inverse::{BackFaces, SpecularLobe, SurfelShading, VIEW_CHANNELS, trace_settings_with};
 use crate::train::material::MaterialView;
 use std::path::Path;
 
@@ -40,8 +39,9 @@ pub struct PbrScene {
     /// training config's `specular_rays`.
     pub specular_rays: usize,
     pub seed: u64,
-    /// How traced rays treat back faces (the training config's `trace_back_faces`).
-    pub back_faces: TraceBackFaces,
+    /// How traced rays treat back faces (the training config's `trace_back_faces`, and the
+    /// run's unseen flags).
+    pub back_faces: BackFaces,
 }
 
 /// A render's traced specular rays per training ray (see [`PbrScene::specular_rays`]).
@@ -78,9 +78,9 @@ impl PbrScene {
         window: usize,
         sample_factor: usize,
         seed: u64,
-        back_faces: TraceBackFaces,
+        back_faces: BackFaces,
     ) -> PbrScene {
-        let tracer = Tracer::build(&surfels, &trace_settings_with(back_faces));
+        let tracer = Tracer::build(&surfels, &trace_settings_with(&back_faces));
         let mut cache = IncidentCache::default();
         cache.refresh(&tracer, &surfels, samples, start, seed);
         let mut mats = MaterialView::default();
@@ -111,7 +111,7 @@ impl PbrScene {
             return;
         };
         self.cache.set_importance(Some(importance));
-        let tracer = Tracer::build(&self.surfels, &trace_settings_with(self.back_faces));
+        let tracer = Tracer::build(&self.surfels, &trace_settings_with(&self.back_faces));
         self.cache.refresh(&tracer, &self.surfels, samples, self.ray_start, self.seed);
     }
 
@@ -124,6 +124,7 @@ impl PbrScene {
         }
         let cfg = crate::eval::load_run_config(run)?;
         let surfels = crate::eval::load_run_surfels(run)?;
+        let back_faces = BackFaces::of_run(run, cfg.trace_back_faces, surfels.len())?;
         let env = EnvMap::load(&env_path)?;
         let extent = scene_extent(run);
         let start = cfg.ray_start(extent);
@@ -143,7 +144,7 @@ impl PbrScene {
                 sample_factor,
                 bounces,
                 env_importance,
-                cfg.trace_back_faces,
+                &back_faces,
             )?;
             let specular = cfg.specular;
             let filter_inv_square = cfg.filter_inv_square;
@@ -159,12 +160,11 @@ impl PbrScene {
                 ray_start: start,
                 specular_rays: RENDER_RAYS_FACTOR * cfg.specular_rays,
                 seed: cfg.seed,
-                back_faces: cfg.trace_back_faces,
+                back_faces,
             }));
         }
         let factor = crate::train::inverse::sample_factor(&cfg);
-        let mut scene =
-            PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, cfg.trace_back_faces);
+        let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, back_faces);
         scene.draw_from_light_peaks(cfg.env_importance_inverse);
         scene.specular = cfg.specular;
         scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;
@@ -197,7 +197,7 @@ impl PbrScene {
         let mut shading = SurfelShading::default();
         let env = self.env.box_downsample(self.sample_factor);
         let tracer = (self.specular == Specular::Traced)
-            .then(|| Tracer::build(&self.surfels, &trace_settings_with(self.back_faces)));
+            .then(|| Tracer::build(&self.surfels, &trace_settings_with(&self.back_faces)));
         let lobe = match (split_sum, &tracer) {
             (Some(ss), _) => SpecularLobe::SplitSum(ss),
             (None, Some(tracer)) => SpecularLobe::Traced(TracedSpecular {

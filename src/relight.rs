@@ -24,9 +24,8 @@ use crate::shade::pbr::{Detach, shade_surfels};
 use crate::shade::splitsum::SplitSum;
 use crate::surfels::Surfels;
 use crate::trace::Tracer;
-use crate::train::config::TraceBackFaces;
 use crate::train::consistency::{RcScratch, RcSettings, encode, radiometric_consistency};
-use crate::train::inverse::trace_settings_with;
+use crate::train::inverse::{BackFaces, trace_settings_with};
 use crate::train::material::{MaterialGrads, MaterialView};
 use anyhow::Context;
 use rand::{RngExt, SeedableRng};
@@ -104,7 +103,7 @@ pub fn check_env_importance(flag: &str, share: f32) -> anyhow::Result<()> {
 }
 
 /// Settings of the finetune.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct FinetuneSettings {
     pub iters: u32,
     pub rc_surfels: usize,
@@ -118,8 +117,8 @@ pub struct FinetuneSettings {
     pub bounces: usize,
     /// Share of the traced start's directions drawn from the map ([`traced_cache`]).
     pub env_importance: f32,
-    /// The trained run's `trace_back_faces`.
-    pub back_faces: TraceBackFaces,
+    /// The trained run's `trace_back_faces` (and unseen flags).
+    pub back_faces: BackFaces,
     pub seed: u64,
 }
 
@@ -155,7 +154,7 @@ pub fn traced_cache(
     sample_factor: usize,
     bounces: usize,
     env_importance: f32,
-    back_faces: TraceBackFaces,
+    back_faces: &BackFaces,
 ) -> crate::Result<IncidentCache> {
     let tracer = Tracer::build(surfels, &trace_settings_with(back_faces));
     let split = SplitSum::new(env)?;
@@ -231,7 +230,7 @@ pub fn finetune(
                 cfg.sample_factor,
                 cfg.bounces,
                 cfg.env_importance,
-                cfg.back_faces,
+                &cfg.back_faces,
             )?;
             &traced
         }
@@ -255,7 +254,7 @@ pub fn finetune(
         roughness_logits: 0.0,
     };
     let mut adam = SurfelAdam::new(surfels, lr);
-    let tracer = Tracer::build(surfels, &trace_settings_with(cfg.back_faces));
+    let tracer = Tracer::build(surfels, &trace_settings_with(&cfg.back_faces));
     let rc = RcSettings {
         surfels: cfg.rc_surfels,
         rays: cfg.rc_rays,
@@ -359,6 +358,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     }
     let cfg = crate::eval::load_run_config(run)?;
     let mut surfels = crate::eval::load_run_surfels(run)?;
+    let back_faces = BackFaces::of_run(run, cfg.trace_back_faces, surfels.len())?;
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;
     let extent = crate::pbr_scene::scene_extent(run);
     let start = cfg.ray_start(extent);
@@ -388,7 +388,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
                 sample_factor: crate::train::inverse::sample_factor(&cfg),
                 bounces: args.bounces,
                 env_importance: args.env_importance,
-                back_faces: cfg.trace_back_faces,
+                back_faces: back_faces.clone(),
                 seed: args.seed,
             };
             let report = finetune(&mut surfels, &mats, &env, &cameras, &settings, true, None)?;
@@ -400,7 +400,14 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
         }
         RelightMode::Traced => {}
     }
-    crate::io::ply::write_ply_trained(&args.out.join("point_cloud.ply"), &surfels, Some(cfg.filter_inv_square))?;
+    // The relit run keeps the unseen flags, so its traced renders block as the run's did.
+    let unseen = back_faces.unseen.as_deref();
+    crate::io::ply::write_ply_flagged(
+        &args.out.join("point_cloud.ply"),
+        &surfels,
+        Some(cfg.filter_inv_square),
+        unseen,
+    )?;
     env.save(&args.out.join("envmap.exr"))?;
     cfg.save(&args.out.join("config.toml"))?;
     crate::io::atomic::write_atomic(&args.out.join("relight.json"), serde_json::to_string_pretty(&record)?.as_bytes())?;
@@ -474,7 +481,7 @@ mod tests {
                 1,
                 TRACED_BOUNCES,
                 share,
-                TraceBackFaces::Cull,
+                &BackFaces::default(),
             )
         };
         let cache = traced(0.0).unwrap();
@@ -530,7 +537,7 @@ mod tests {
                 1,
                 TRACED_BOUNCES,
                 share,
-                TraceBackFaces::Cull,
+                &BackFaces::default(),
             )
             .unwrap();
             let inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &mats.normal);
@@ -633,7 +640,7 @@ mod tests {
         let mut previous: Option<Vec<[f32; 3]>> = None;
         for bounces in 1..=3 {
             reference.refresh_with(&tracer, &s, samples, start, seed, Some(&radiance));
-            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces, 0.5, TraceBackFaces::Cull)
+            let fast = traced_cache(&s, &mats, &env, samples, start, seed, factor, bounces, 0.5, &BackFaces::default())
                 .unwrap();
             assert_eq!(fast.sample_weights, reference.sample_weights);
             assert_eq!(fast.dirs, reference.dirs);

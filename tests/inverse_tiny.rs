@@ -88,7 +88,7 @@ fn make_dataset(dir: &Path) -> Surfels {
         8,
         1,
         1,
-        radiogs::train::config::TraceBackFaces::Cull,
+        radiogs::train::inverse::BackFaces::default(),
     );
     let angle = 0.9f32;
     let cameras: Vec<Camera> = (0..4)
@@ -412,7 +412,7 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
     // traced from the previous SH.
     for _ in 0..4 {
         let scene =
-            PbrScene::new(gt.clone(), env.clone(), 64, start, 8, 1, 1, radiogs::train::config::TraceBackFaces::Cull);
+            PbrScene::new(gt.clone(), env.clone(), 64, start, 8, 1, 1, radiogs::train::inverse::BackFaces::default());
         let n = gt.len();
         let normal: Vec<[f32; 3]> = (0..n).map(|i| gt.normal(i)).collect();
         let rough = vec![0.9f32; n];
@@ -425,7 +425,7 @@ fn gauge_recovers_the_albedo_scale_from_inter_reflections() {
         }
     }
     let data = temp_dir("gauge-data");
-    let scene = PbrScene::new(gt.clone(), env, 64, start, 8, 1, 1, radiogs::train::config::TraceBackFaces::Cull);
+    let scene = PbrScene::new(gt.clone(), env, 64, start, 8, 1, 1, radiogs::train::inverse::BackFaces::default());
     let angle = 0.9f32;
     let cameras: Vec<Camera> = (0..4)
         .map(|k| {

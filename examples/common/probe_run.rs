@@ -1,5 +1,6 @@
 //! The `RUN DATA` arguments of the probe examples: the run's training config (with
-//! `SKIP_MARGIN=m` overriding its `ray_skip_margin`, × extent), scene extent and surfels.
+//! `SKIP_MARGIN=m` overriding its `ray_skip_margin`, × extent), scene extent, surfels and how
+//! its traced rays treat back faces.
 //! Included by several example binaries, each using part of it.
 #![allow(dead_code)]
 
@@ -12,6 +13,7 @@ pub struct ProbeRun {
     pub cfg: radiogs::train::config::TrainConfig,
     pub extent: f32,
     pub surfels: radiogs::surfels::Surfels,
+    pub back_faces: radiogs::train::inverse::BackFaces,
 }
 
 /// Parse `RUN DATA` from the command line of example `name` and load the run.
@@ -27,7 +29,8 @@ pub fn from_args(name: &str) -> anyhow::Result<ProbeRun> {
     }
     let extent = radiogs::pbr_scene::scene_extent(&run);
     let surfels = radiogs::eval::load_run_surfels(&run)?;
-    Ok(ProbeRun { run, data, cfg, extent, surfels })
+    let back_faces = radiogs::train::inverse::BackFaces::of_run(&run, cfg.trace_back_faces, surfels.len())?;
+    Ok(ProbeRun { run, data, cfg, extent, surfels, back_faces })
 }
 
 /// Print the cache's size and where its rays start (the probes' first line).

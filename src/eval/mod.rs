@@ -80,6 +80,22 @@ pub fn load_run_surfels(run: &Path) -> anyhow::Result<Surfels> {
 }
 
 /// The most recently written of the run's nvs, init and inverse checkpoints.
+/// The unseen flags saved with the run's surfels ([`load_run_surfels`]'s source: the PLY's
+/// property `unseen`, else the newest checkpoint's blob), or None; and that source's name.
+pub fn load_run_unseen(run: &Path) -> anyhow::Result<(Option<Vec<bool>>, String)> {
+    let ply = run.join("point_cloud.ply");
+    if ply.is_file() {
+        return Ok((crate::io::ply::read_ply_unseen(&ply)?, ply.display().to_string()));
+    }
+    match newest_checkpoint(run) {
+        Some(ckpt) => {
+            let c = crate::train::checkpoint::Checkpoint::load(&ckpt)?;
+            Ok((crate::train::inverse::unseen_flags(&ckpt, &c)?, ckpt.display().to_string()))
+        }
+        None => Ok((None, run.display().to_string())),
+    }
+}
+
 fn newest_checkpoint(run: &Path) -> Option<PathBuf> {
     let modified = |p: &PathBuf| std::fs::metadata(p).and_then(|m| m.modified()).ok();
     crate::train::inverse::geometry_checkpoint(run)
@@ -532,7 +548,7 @@ fn eval_relight(
                     factor,
                     bounces,
                     args.relight_env_importance,
-                    cfg.trace_back_faces,
+                    &scene.back_faces,
                 )?;
                 light_cache = Some(cache.clone());
                 traced_scene = Some(crate::pbr_scene::PbrScene {
@@ -547,7 +563,7 @@ fn eval_relight(
                     ray_start: start,
                     specular_rays: crate::pbr_scene::RENDER_RAYS_FACTOR * cfg.specular_rays,
                     seed: cfg.seed,
-                    back_faces: cfg.trace_back_faces,
+                    back_faces: scene.back_faces.clone(),
                 });
             } else {
                 let settings = FinetuneSettings {
@@ -560,7 +576,7 @@ fn eval_relight(
                     sample_factor: crate::train::inverse::sample_factor(cfg),
                     bounces: args.relight_bounces,
                     env_importance: args.relight_env_importance,
-                    back_faces: cfg.trace_back_faces,
+                    back_faces: scene.back_faces.clone(),
                     seed: cfg.seed,
                 };
                 finetune(&mut surfels, &mats, &env, &cameras, &settings, true, light_cache.as_ref())?;

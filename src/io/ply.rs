@@ -283,6 +283,37 @@ pub fn read_ply(path: &Path) -> Result<Surfels> {
     Ok(s)
 }
 
+/// The `unseen` flags of a PLY written by [`write_ply_flagged`], or None when it has no such
+/// property. A value other than 0 or 1 is an error naming the surfel.
+pub fn read_ply_unseen(path: &Path) -> Result<Option<Vec<bool>>> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let (elements, body) = parse_header(path, &bytes)?;
+    let (vertex, offset) = vertex_layout(path, &elements)?;
+    let stride: usize = vertex.properties.iter().map(|p| p.1.size()).sum();
+    let mut at = 0;
+    let mut column = None;
+    for (name, ty) in &vertex.properties {
+        if name == UNSEEN_PROPERTY {
+            column = Some((at, *ty));
+        }
+        at += ty.size();
+    }
+    let Some((at, ty)) = column else { return Ok(None) };
+    let start = body + offset;
+    let needed = vertex.count.checked_mul(stride).and_then(|n| n.checked_add(start));
+    if needed.is_none_or(|n| n > bytes.len()) {
+        return Err(Error::format(path, "vertex data", "the file is shorter than its header says"));
+    }
+    (0..vertex.count)
+        .map(|i| match ty.read(&bytes[start + i * stride + at..]) {
+            0.0 => Ok(false),
+            1.0 => Ok(true),
+            v => Err(Error::format(path, format!("surfel {i}: {UNSEEN_PROPERTY}"), format!("{v} is not 0 or 1"))),
+        })
+        .collect::<Result<Vec<bool>>>()
+        .map(Some)
+}
+
 /// The header comment that records the screen-space filter a radiogs PLY was trained with.
 const FILTER_COMMENT: &str = "radiogs filter_inv_square";
 
@@ -317,7 +348,25 @@ pub fn write_ply(path: &Path, s: &Surfels) -> Result<()> {
 /// [`write_ply`] recording in a header comment the screen-space filter the surfels were trained
 /// with, so that `radiogs render --ply` draws them as training did.
 pub fn write_ply_trained(path: &Path, s: &Surfels, filter_inv_square: Option<f32>) -> Result<()> {
+    write_ply_flagged(path, s, filter_inv_square, None)
+}
+
+/// The per-surfel property that flags surfels no training camera saw (1) as the inverse stage
+/// oriented them; `--trace-back-faces dark-unseen` traces their back faces as occluders.
+const UNSEEN_PROPERTY: &str = "unseen";
+
+/// [`write_ply_trained`] plus, with `unseen` (one flag per surfel), the float property
+/// `unseen` (0 or 1), which 3DGS/2DGS readers ignore.
+pub fn write_ply_flagged(
+    path: &Path,
+    s: &Surfels,
+    filter_inv_square: Option<f32>,
+    unseen: Option<&[bool]>,
+) -> Result<()> {
     s.validate()?;
+    if let Some(u) = unseen {
+        assert_eq!(u.len(), s.len(), "write_ply: one unseen flag per surfel");
+    }
     let mut header = String::from(
         "ply\nformat binary_little_endian 1.0\ncomment radiogs surfels (2DGS layout + albedo/roughness logits)\n",
     );
@@ -344,6 +393,9 @@ pub fn write_ply_trained(path: &Path, s: &Surfels, filter_inv_square: Option<f32
         ]
         .map(String::from),
     );
+    if unseen.is_some() {
+        names.push(UNSEEN_PROPERTY.to_string());
+    }
     for n in &names {
         header.push_str(&format!("property float {n}\n"));
     }
@@ -365,6 +417,9 @@ pub fn write_ply_trained(path: &Path, s: &Surfels, filter_inv_square: Option<f32
             row.extend_from_slice(&s.quats[i]);
             row.extend_from_slice(&s.albedo_logits[i]);
             row.push(s.roughness_logits[i]);
+            if let Some(u) = unseen {
+                row.push(if u[i] { 1.0 } else { 0.0 });
+            }
             for v in &row {
                 w.write_all(&v.to_le_bytes())?;
             }
@@ -414,6 +469,28 @@ mod tests {
         std::fs::write(&path, &damaged).unwrap();
         let err = read_ply_filter_inv_square(&path).unwrap_err().to_string();
         assert!(err.contains("filter_inv_square") && err.contains("not a number"), "{err}");
+    }
+
+    #[test]
+    fn unseen_flags_round_trip_and_bad_values_are_named() {
+        let s = random_surfels(6);
+        let (_dir, path) = temp("unseen");
+        write_ply_trained(&path, &s, Some(2.0)).unwrap();
+        assert_eq!(read_ply_unseen(&path).unwrap(), None);
+        let flags = [true, false, false, true, true, false];
+        write_ply_flagged(&path, &s, Some(2.0), Some(&flags)).unwrap();
+        assert_eq!(read_ply_unseen(&path).unwrap().as_deref(), Some(&flags[..]));
+        // The extra property leaves the surfels as they were.
+        let back = read_ply(&path).unwrap();
+        assert_eq!((back.means, back.sh, back.quats), (s.means.clone(), s.sh.clone(), s.quats.clone()));
+        // A value other than 0 or 1 (the last float of surfel 2's row) is named.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let row = 4 * (9 + 45 + 11 + 1);
+        let end = bytes.len() - 3 * row;
+        bytes[end - 4..end].copy_from_slice(&0.5f32.to_le_bytes());
+        std::fs::write(&path, &bytes).unwrap();
+        let err = read_ply_unseen(&path).unwrap_err().to_string();
+        assert!(err.contains("surfel 2: unseen") && err.contains("0.5"), "{err}");
     }
 
     #[test]

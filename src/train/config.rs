@@ -42,6 +42,9 @@ pub enum TraceBackFaces {
     TwoSided,
     /// As two-sided, but a back face adds no radiance: it only blocks the light behind it.
     Dark,
+    /// Culled, except the surfels no training camera saw when the inverse stage oriented them
+    /// (their orientation is a guess): their back faces block as `dark` ones do.
+    DarkUnseen,
 }
 
 /// How the inverse stage's PBR colour gets its specular lobe.
@@ -466,10 +469,12 @@ pub struct TrainConfig {
     /// the indirect light 2–3 dB worse; see BENCHMARKS).
     #[arg(long, default_value_t = 0.013)]
     pub ray_skip_margin: f32,
-    /// Back faces of the PBR stages' traced rays: `cull` (RadioGS), `two-sided` or `dark`
-    /// (they block light but add none). Culled, surfels no camera saw that face the wrong way
-    /// leak light into shadows; the others trade indirect light for albedo (BENCHMARKS.md,
-    /// sessions 66–67). Training, eval and relighting of a run use its setting.
+    /// Back faces of the PBR stages' traced rays: `cull` (RadioGS), `two-sided`, `dark`
+    /// (they block light but add none) or `dark-unseen` (culled but for the surfels no camera
+    /// saw, whose back faces block as dark ones; the flags are kept in the checkpoint and as
+    /// the PLY property `unseen`). Culled, surfels no camera saw that face the wrong way leak
+    /// light into shadows; the others trade indirect light for albedo (BENCHMARKS.md,
+    /// sessions 66–68). Training, eval and relighting of a run use its setting.
     #[arg(long, value_enum, default_value_t = TraceBackFaces::Cull)]
     #[serde(default)]
     pub trace_back_faces: TraceBackFaces,

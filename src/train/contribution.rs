@@ -31,7 +31,14 @@ pub fn max_blend_weights(surfels: &Surfels, cameras: &[Camera], settings: &Raste
 
 /// Keep the surfels whose largest blend weight over `cameras` is at least `threshold`;
 /// returns how many were dropped. A threshold of 0 keeps every surfel (and renders nothing).
-pub fn prune_unseen(surfels: &mut Surfels, cameras: &[Camera], settings: &RasterSettings, threshold: f32) -> usize {
+/// Also drops the pruned surfels' entries of `flags` (one per surfel, or empty).
+pub fn prune_unseen(
+    surfels: &mut Surfels,
+    cameras: &[Camera],
+    settings: &RasterSettings,
+    threshold: f32,
+    flags: &mut Vec<bool>,
+) -> usize {
     if !(threshold > 0.0) {
         return 0;
     }
@@ -39,6 +46,10 @@ pub fn prune_unseen(surfels: &mut Surfels, cameras: &[Camera], settings: &Raster
     let keep: Vec<bool> = max_w.iter().map(|&w| w >= threshold).collect();
     let before = surfels.len();
     surfels.retain_mask(&keep);
+    if !flags.is_empty() {
+        let mut k = keep.iter();
+        flags.retain(|_| *k.next().unwrap());
+    }
     before - surfels.len()
 }
 
@@ -82,11 +93,14 @@ mod tests {
             assert!((sum - out.alpha[px]).abs() < 1e-5, "pixel {px}: {sum} vs {}", out.alpha[px]);
         }
         let mut pruned = s.clone();
-        assert_eq!(prune_unseen(&mut pruned, std::slice::from_ref(&cam), &settings, 1.0 / 255.0), 2);
+        // Per-surfel flags follow their surfels.
+        let mut flags = vec![false, true, true, false, true];
+        assert_eq!(prune_unseen(&mut pruned, std::slice::from_ref(&cam), &settings, 1.0 / 255.0, &mut flags), 2);
         assert_eq!(pruned.means, vec![s.means[0], s.means[1], s.means[4]]);
+        assert_eq!(flags, [false, true, true]);
         // Threshold 0 keeps everything.
         let mut all = s.clone();
-        assert_eq!(prune_unseen(&mut all, &[cam], &settings, 0.0), 0);
+        assert_eq!(prune_unseen(&mut all, &[cam], &settings, 0.0, &mut Vec::new()), 0);
         assert_eq!(all.len(), 5);
     }
 }

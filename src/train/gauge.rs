@@ -186,7 +186,7 @@ pub fn fit(cfg: &TrainConfig, state: &InverseState, images: &TrainImages) -> Gau
         Specular::Mc | Specular::Traced => None,
     };
     let tracer = (cfg.specular == Specular::Traced)
-        .then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings_with(cfg.trace_back_faces)));
+        .then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings_with(&state.back_faces(cfg))));
     let settings = RasterSettings {
         window: cfg.window,
         filter_inv_square: cfg.filter_inv_square,

@@ -34,7 +34,7 @@ use crate::camera::Camera;
 use crate::envmap::EnvMap;
 use crate::error::Error;
 use crate::io::dataset::{Dataset, Split};
-use crate::io::ply::write_ply_trained;
+use crate::io::ply::write_ply_flagged;
 use crate::loss::{self, EdgeAwareSmoothness, NormalConsistency, Ssim};
 use crate::optim::{LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
@@ -51,6 +51,7 @@ use anyhow::Context;
 use rand::RngExt;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Feature channels rasterised in training: linear L_pbr (3), albedo (3), roughness (1).
@@ -71,17 +72,52 @@ pub fn sample_factor(cfg: &TrainConfig) -> usize {
 /// The tracer settings of the PBR stages (RadioGS: stop at T < 0.03, cull back faces;
 /// indirect light composited as linear radiance).
 pub fn trace_settings() -> TraceSettings {
-    trace_settings_with(TraceBackFaces::Cull)
+    trace_settings_with(&TraceBackFaces::Cull.into())
+}
+
+/// How the PBR stages' traced rays treat back faces: `--trace-back-faces` and, for
+/// `dark-unseen`, which surfels no camera saw (one flag per surfel; without flags it culls).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct BackFaces {
+    pub mode: TraceBackFaces,
+    pub unseen: Option<Arc<[bool]>>,
+}
+
+impl From<TraceBackFaces> for BackFaces {
+    fn from(mode: TraceBackFaces) -> Self {
+        BackFaces { mode, unseen: None }
+    }
+}
+
+impl BackFaces {
+    /// A run's: its config's mode, and with `dark-unseen` the flags saved with its surfels
+    /// (`point_cloud.ply`'s property `unseen`, else the newest checkpoint's), which must exist
+    /// and number `count`.
+    pub fn of_run(run: &Path, mode: TraceBackFaces, count: usize) -> anyhow::Result<BackFaces> {
+        if mode != TraceBackFaces::DarkUnseen {
+            return Ok(mode.into());
+        }
+        let (flags, source) = crate::eval::load_run_unseen(run)?;
+        let flags = flags
+            .with_context(|| format!("{source}: the run traces back faces as dark-unseen but holds no unseen flags"))?;
+        anyhow::ensure!(
+            flags.len() == count,
+            "{source}: {} unseen flags for {count} surfels (from another run?)",
+            flags.len()
+        );
+        Ok(BackFaces { mode, unseen: Some(flags.into()) })
+    }
 }
 
 /// [`trace_settings`] with back faces as `back_faces` says (`--trace-back-faces`).
-pub fn trace_settings_with(back_faces: TraceBackFaces) -> TraceSettings {
-    let (two_sided, dark_back_faces) = match back_faces {
-        TraceBackFaces::Cull => (false, false),
+pub fn trace_settings_with(back_faces: &BackFaces) -> TraceSettings {
+    let (two_sided, dark_back_faces) = match back_faces.mode {
+        TraceBackFaces::Cull | TraceBackFaces::DarkUnseen => (false, false),
         TraceBackFaces::TwoSided => (true, false),
         TraceBackFaces::Dark => (true, true),
     };
-    TraceSettings { linear_radiance: true, two_sided, dark_back_faces, ..TraceSettings::default() }
+    let back_occluders = if back_faces.mode == TraceBackFaces::DarkUnseen { back_faces.unseen.clone() } else { None };
+    TraceSettings { linear_radiance: true, two_sided, dark_back_faces, back_occluders, ..TraceSettings::default() }
 }
 
 /// Everything an inverse run holds.
@@ -94,6 +130,9 @@ pub struct InverseState {
     pub traced_at: Vec<u32>,
     pub iteration: u32,
     pub extent: f32,
+    /// Per surfel: no training camera saw it when the stage oriented the surfels (empty when
+    /// the geometry kept its own orientation). `--trace-back-faces dark-unseen` uses it.
+    pub unseen: Vec<bool>,
 }
 
 /// The nvs stage's initial position rate (scaled by the scene extent) × the geometry scale.
@@ -131,8 +170,10 @@ impl InverseState {
         geometry_two_sided: bool,
     ) -> crate::Result<InverseState> {
         let n0 = surfels.len();
+        let mut unseen = Vec::new();
         if geometry_two_sided {
-            let o = orient_surfels(&mut surfels, cameras, cfg.window, cfg.filter_inv_square, 0.01 * extent);
+            let o;
+            (o, unseen) = orient_surfels(&mut surfels, cameras, cfg.window, cfg.filter_inv_square, 0.01 * extent);
             tracing::info!(
                 "inverse: oriented {n0} surfels towards the cameras that see them: {} flipped, {} seen from both \
                  sides doubled, {} unseen",
@@ -155,7 +196,8 @@ impl InverseState {
             ..RasterSettings::default()
         };
         let n1 = surfels.len();
-        let dropped = super::contribution::prune_unseen(&mut surfels, cameras, &settings, cfg.prune_contribution);
+        let dropped =
+            super::contribution::prune_unseen(&mut surfels, cameras, &settings, cfg.prune_contribution, &mut unseen);
         if dropped > 0 {
             tracing::info!(
                 "inverse: dropped {dropped} of {n1} surfels that reach a blend weight of {} in no training pixel",
@@ -198,7 +240,14 @@ impl InverseState {
             traced_at: Vec::new(),
             iteration: 0,
             extent,
+            unseen,
         })
+    }
+
+    /// How this run's traced rays treat back faces.
+    pub fn back_faces(&self, cfg: &TrainConfig) -> BackFaces {
+        let unseen = (!self.unseen.is_empty()).then(|| Arc::from(self.unseen.as_slice()));
+        BackFaces { mode: cfg.trace_back_faces, unseen }
     }
 
     pub fn to_checkpoint(&self, cfg: &TrainConfig) -> Checkpoint {
@@ -226,6 +275,9 @@ impl InverseState {
         c.put("cache.traced_at", self.traced_at.iter().map(|&t| t as f32).collect());
         if !self.cache.sample_weights.is_empty() {
             c.put("cache.sample_weights", self.cache.sample_weights.clone());
+        }
+        if !self.unseen.is_empty() {
+            c.put(UNSEEN_BLOB, self.unseen.iter().map(|&u| u as u8 as f32).collect());
         }
         c
     }
@@ -281,8 +333,34 @@ impl InverseState {
             Some(t) if t.len() == cache.len() => t.iter().map(|&x| x as u32).collect(),
             _ => vec![iteration; cache.len()],
         };
-        Ok(InverseState { surfels, adam, light, cache, traced_at, iteration, extent })
+        let unseen = unseen_flags(path, c)?.unwrap_or_default();
+        if !unseen.is_empty() && unseen.len() != surfels.len() {
+            return Err(Error::format(
+                path,
+                UNSEEN_BLOB,
+                format!("{} flags for {} surfels", unseen.len(), surfels.len()),
+            ));
+        }
+        Ok(InverseState { surfels, adam, light, cache, traced_at, iteration, extent, unseen })
     }
+}
+
+/// The checkpoint blob of [`InverseState::unseen`] (0 or 1 per surfel).
+const UNSEEN_BLOB: &str = "unseen";
+
+/// A checkpoint's unseen flags, or None when it has none (an nvs checkpoint, or an inverse one
+/// from before session 68).
+pub fn unseen_flags(path: &Path, c: &Checkpoint) -> crate::Result<Option<Vec<bool>>> {
+    let Some(blob) = c.blob(UNSEEN_BLOB) else { return Ok(None) };
+    blob.iter()
+        .enumerate()
+        .map(|(i, &v)| match v {
+            0.0 => Ok(false),
+            1.0 => Ok(true),
+            _ => Err(Error::format(path, format!("{UNSEEN_BLOB}[{i}]"), format!("{v} is not 0 or 1"))),
+        })
+        .collect::<crate::Result<Vec<bool>>>()
+        .map(Some)
 }
 
 /// Where the PBR colour's specular lobe comes from (`--specular`).
@@ -867,7 +945,7 @@ pub fn objective_per_view(cfg: &TrainConfig, dataset: &Dataset, seed: u64) -> an
     let ckpt_path = checkpoint_path(&cfg.out);
     let c = Checkpoint::load(&ckpt_path)?;
     let mut state = InverseState::from_checkpoint(&ckpt_path, &c, cfg)?;
-    let tracer = Tracer::build(&state.surfels, &trace_settings_with(cfg.trace_back_faces));
+    let tracer = Tracer::build(&state.surfels, &trace_settings_with(&state.back_faces(cfg)));
     state.cache.refresh(&tracer, &state.surfels, cfg.pbr_samples, cfg.ray_start(state.extent), seed);
     let env = state.env();
     let env_s = env.box_downsample(sample_factor(cfg));
@@ -972,7 +1050,16 @@ pub fn run_until(
     };
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
-    let mut tracer = Tracer::build(&state.surfels, &trace_settings_with(cfg.trace_back_faces));
+    if cfg.trace_back_faces == TraceBackFaces::DarkUnseen {
+        match state.unseen.iter().filter(|u| **u).count() {
+            _ if state.unseen.is_empty() => tracing::warn!(
+                "inverse: --trace-back-faces dark-unseen, but this run has no unseen flags (its geometry kept its \
+                 orientation, or the checkpoint predates them): back faces are culled"
+            ),
+            k => tracing::info!("inverse: the back faces of the {k} unseen surfels block traced rays (dark-unseen)"),
+        }
+    }
+    let mut tracer = Tracer::build(&state.surfels, &trace_settings_with(&state.back_faces(cfg)));
     let start = cfg.ray_start(state.extent);
     let mut times = InverseTimes::default();
     follow_light_peaks(cfg, &mut state);
@@ -1064,7 +1151,7 @@ pub fn run_until(
         let t_fit = Instant::now();
         tracer.refit(&state.surfels);
         if tracer.needs_rebuild() {
-            tracer = Tracer::build(&state.surfels, &trace_settings_with(cfg.trace_back_faces));
+            tracer = Tracer::build(&state.surfels, &trace_settings_with(&state.back_faces(cfg)));
         }
         times.tracer_refit += t_fit.elapsed().as_secs_f64();
         if it % check_every == 0 && it < cfg.inverse_iters {
@@ -1103,7 +1190,8 @@ pub fn run_until(
     bar.finish_and_clear();
     state.to_checkpoint(cfg).save(&ckpt_path)?;
     if !interrupted {
-        write_ply_trained(&cfg.out.join("point_cloud.ply"), &state.surfels, Some(cfg.filter_inv_square))?;
+        let unseen = (!state.unseen.is_empty()).then_some(&state.unseen[..]);
+        write_ply_flagged(&cfg.out.join("point_cloud.ply"), &state.surfels, Some(cfg.filter_inv_square), unseen)?;
         state.env().save(&cfg.out.join("envmap.exr"))?;
     }
     let seconds = started.elapsed().as_secs_f64();
@@ -1170,6 +1258,16 @@ mod tests {
         cut.put("cache.sample_weights", vec![1.0; 5]);
         let err = InverseState::from_checkpoint(path, &cut, &cfg).err().expect("refused").to_string();
         assert!(err.contains("cache.sample_weights"), "{err}");
+        // Unseen flags round-trip; a blob of another length or with another value is refused.
+        state.unseen = vec![true, false, false, true, false];
+        let c = state.to_checkpoint(&cfg);
+        assert_eq!(InverseState::from_checkpoint(path, &c, &cfg).expect("flags load").unseen, state.unseen);
+        for bad in [vec![1.0; 4], vec![0.0, 0.5, 0.0, 0.0, 0.0]] {
+            let mut cut = c.clone();
+            cut.put("unseen", bad);
+            let err = InverseState::from_checkpoint(path, &cut, &cfg).err().expect("refused").to_string();
+            assert!(err.contains("unseen"), "{err}");
+        }
         // A wrong sample count, and one whose product with the surfel count overflows.
         for samples in [3u64, 1 << 62] {
             let mut c = good.clone();
@@ -1177,6 +1275,30 @@ mod tests {
             let err = InverseState::from_checkpoint(path, &c, &cfg).err().expect("refused").to_string();
             assert!(err.contains("cache"), "{err}");
         }
+    }
+
+    /// A run's back faces: a mode other than dark-unseen needs nothing; dark-unseen takes the
+    /// PLY's flags, else the checkpoint's, and names the file when they are missing or miscounted.
+    #[test]
+    fn a_runs_back_faces_take_its_saved_unseen_flags() {
+        let run = crate::test_dir::TempDir::new("back-faces");
+        let s = Surfels::random_in_box(4, [-1.0; 3], [1.0; 3], 3);
+        assert_eq!(BackFaces::of_run(&run, TraceBackFaces::Dark, 4).unwrap(), TraceBackFaces::Dark.into());
+        let mut c = Checkpoint::default();
+        c.put_surfels("params", &s);
+        c.put(UNSEEN_BLOB, vec![0.0, 1.0, 1.0, 0.0]);
+        c.save(&checkpoint_path(&run)).unwrap();
+        let b = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 4).unwrap();
+        assert_eq!(b.unseen.as_deref(), Some(&[false, true, true, false][..]));
+        let ply = run.join("point_cloud.ply");
+        write_ply_flagged(&ply, &s, None, Some(&[true, false, false, false])).unwrap();
+        let b = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 4).unwrap();
+        assert_eq!(b.unseen.as_deref(), Some(&[true, false, false, false][..]));
+        let err = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 5).unwrap_err().to_string();
+        assert!(err.contains("point_cloud.ply") && err.contains("4 unseen flags for 5 surfels"), "{err}");
+        write_ply_flagged(&ply, &s, None, None).unwrap();
+        let err = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 4).unwrap_err().to_string();
+        assert!(err.contains("point_cloud.ply") && err.contains("no unseen flags"), "{err}");
     }
 
     /// The split-sum PBR colour of `SurfelShading` (Lambert Monte Carlo + occluded split-sum
@@ -1400,19 +1522,27 @@ mod tests {
         s.push([0.0; 3], [0.05, 0.05], up, 0.9, [0.5; 3], [0.5; 3], 0.5);
         s.push([0.0, 0.0, 0.3], [2.0, 2.0], up, 0.95, [0.9, 0.6, 0.3], [0.5; 3], 0.5);
         let samples = 64;
-        let cache_of = |mode: TraceBackFaces| {
-            let tracer = Tracer::build(&s, &trace_settings_with(mode));
+        let cache_of = |mode: BackFaces| {
+            let tracer = Tracer::build(&s, &trace_settings_with(&mode));
             let mut cache = IncidentCache::default();
             cache.refresh(&tracer, &s, samples, crate::shade::incident::RayStart::offset_only(1e-3), 5);
             let vis: f32 = cache.visibility[..samples].iter().sum::<f32>() / samples as f32;
             let ind: f32 = cache.indirect[..samples].iter().map(|c| c[0]).sum::<f32>() / samples as f32;
             (vis, ind)
         };
-        let (cull, two, dark) =
-            (cache_of(TraceBackFaces::Cull), cache_of(TraceBackFaces::TwoSided), cache_of(TraceBackFaces::Dark));
+        let (cull, two, dark) = (
+            cache_of(TraceBackFaces::Cull.into()),
+            cache_of(TraceBackFaces::TwoSided.into()),
+            cache_of(TraceBackFaces::Dark.into()),
+        );
         assert!(cull.0 > 0.999 && cull.1 == 0.0, "culled: {cull:?}");
         assert!(two.0 < 0.5 && two.1 > 0.1, "two-sided: {two:?}");
         assert_eq!(dark.0, two.0, "dark back faces block as two-sided ones do");
         assert_eq!(dark.1, 0.0, "dark back faces add no light");
+        // dark-unseen: the upper surfel blocks as dark when flagged unseen, else it is culled.
+        let unseen = |flags: [bool; 2]| BackFaces { mode: TraceBackFaces::DarkUnseen, unseen: Some(flags.into()) };
+        assert_eq!(cache_of(unseen([false, true])), dark);
+        assert_eq!(cache_of(unseen([true, false])), cull);
+        assert_eq!(cache_of(TraceBackFaces::DarkUnseen.into()), cull, "without flags it culls");
     }
 }

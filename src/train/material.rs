@@ -120,14 +120,14 @@ pub struct Orientation {
 /// (centre in the image, its depth within `tolerance` of the rendered depth). Surfels seen
 /// from both sides (at least 2 cameras and 20% of the votes each) get a flipped twin at the
 /// same place, so every view still sees one of the two; unseen surfels face away from the
-/// centroid of the scene.
+/// centroid of the scene. Also returns which surfels (twins included) were unseen.
 pub fn orient_surfels(
     s: &mut Surfels,
     cameras: &[crate::camera::Camera],
     window: usize,
     filter_inv_square: f32,
     tolerance: f32,
-) -> Orientation {
+) -> (Orientation, Vec<bool>) {
     use crate::raster::{self, Outputs, RasterSettings};
     let n = s.len();
     let mut pos = vec![0u32; n];
@@ -177,6 +177,7 @@ pub fn orient_surfels(
     }
     let mut o = Orientation::default();
     let mut twins = Vec::new();
+    let mut unseen = vec![false; n];
     for i in 0..n {
         let (p, q) = (pos[i], neg[i]);
         let total = p + q;
@@ -189,6 +190,7 @@ pub fn orient_surfels(
                 o.flipped += 1;
             }
             o.unseen += 1;
+            unseen[i] = true;
             continue;
         }
         if p.min(q) >= 2 && p.min(q) as f32 >= 0.2 * total as f32 {
@@ -203,7 +205,8 @@ pub fn orient_surfels(
     for k in 0..twins.len() {
         flip_surfel(s, n + k);
     }
-    o
+    unseen.resize(s.len(), false);
+    (o, unseen)
 }
 
 #[cfg(test)]
@@ -253,6 +256,8 @@ mod tests {
                 );
             }
         }
+        // And one far off to the side that no camera sees.
+        s.push([50.0, 0.0, 0.0], [0.08, 0.08], floor_down, 0.95, [0.5; 3], [0.5; 3], 0.5);
         assert!(s.normal(0)[1] > 0.99 && s.normal(1)[1] < -0.99 && s.normal(100)[2] < -0.99);
         let cams: Vec<Camera> = [
             Vec3::new(0.3, 3.0, 0.5),
@@ -268,15 +273,18 @@ mod tests {
             Camera::look_at("c", p, target, 64, 64, 0.9)
         })
         .collect();
-        let o = orient_surfels(&mut s, &cams, 8, 2.0, 0.05);
-        assert_eq!(s.len(), 200 + o.doubled);
+        let (o, unseen) = orient_surfels(&mut s, &cams, 8, 2.0, 0.05);
+        assert_eq!(s.len(), 201 + o.doubled);
+        assert_eq!(unseen.len(), s.len());
+        assert!(unseen[200] && unseen[201..].iter().all(|u| !u), "the far surfel is unseen, the twins seen");
+        assert_eq!(unseen.iter().filter(|u| **u).count(), o.unseen);
         assert!(o.doubled >= 50, "{o:?}");
         for i in 100..200 {
             assert!(s.normal(i)[2] > 0.99, "floor surfel {i} must face up: {:?}", s.normal(i));
         }
         // Every doubled wall surfel has a twin facing the other way.
         for k in 0..o.doubled {
-            let t = 200 + k;
+            let t = 201 + k;
             assert!(s.normal(t)[1].abs() > 0.99);
         }
     }

@@ -52,6 +52,9 @@ pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
                 None => "2 (not recorded: 2DGS's)".to_string(),
             }
         );
+        if let Some(unseen) = ply::read_ply_unseen(path)? {
+            println!("  {} surfels flagged unseen (no training camera saw them)", unseen.iter().filter(|u| **u).count());
+        }
     }
     Ok(())
 }

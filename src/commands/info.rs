@@ -53,7 +53,10 @@ pub fn run(args: &InfoArgs) -> anyhow::Result<()> {
             }
         );
         if let Some(unseen) = ply::read_ply_unseen(path)? {
-            println!("  {} surfels flagged unseen (no training camera saw them)", unseen.iter().filter(|u| **u).count());
+            println!(
+                "  {} surfels flagged unseen (no training camera saw them)",
+                unseen.iter().filter(|u| **u).count()
+            );
         }
     }
     Ok(())

@@ -35,7 +35,7 @@ pub enum Background {
 #[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum TraceBackFaces {
-    /// Culled: normals point outward (RadioGS).
+    /// Culled: normals point outward (RadioGS). What runs saved before the setting traced.
     #[default]
     Cull,
     /// Composited with the normal flipped (plain 2DGS).
@@ -469,13 +469,14 @@ pub struct TrainConfig {
     /// the indirect light 2–3 dB worse; see BENCHMARKS).
     #[arg(long, default_value_t = 0.013)]
     pub ray_skip_margin: f32,
-    /// Back faces of the PBR stages' traced rays: `cull` (RadioGS), `two-sided`, `dark`
-    /// (they block light but add none) or `dark-unseen` (culled but for the surfels no camera
-    /// saw, whose back faces block as dark ones; the flags are kept in the checkpoint and as
-    /// the PLY property `unseen`). Culled, surfels no camera saw that face the wrong way leak
-    /// light into shadows; the others trade indirect light for albedo (BENCHMARKS.md,
-    /// sessions 66–68). Training, eval and relighting of a run use its setting.
-    #[arg(long, value_enum, default_value_t = TraceBackFaces::Cull)]
+    /// Back faces of the PBR stages' traced rays: `dark-unseen` (the default: culled but for
+    /// the surfels no camera saw, whose orientation is a guess; their back faces block light
+    /// and add none; the flags are kept in the checkpoint and as the PLY property `unseen`),
+    /// `cull` (RadioGS), `two-sided` or `dark` (every back face blocks, none adds light).
+    /// Culled, surfels no camera saw that face the wrong way leak light into shadows; two-sided
+    /// and dark trade indirect light for albedo (BENCHMARKS.md, sessions 66–68). Training, eval
+    /// and relighting of a run use its setting; runs saved before it load as `cull`.
+    #[arg(long, value_enum, default_value_t = TraceBackFaces::DarkUnseen)]
     #[serde(default)]
     pub trace_back_faces: TraceBackFaces,
     /// The inverse stage drops the geometry's surfels whose largest blend weight (α T) over
@@ -978,6 +979,10 @@ mod tests {
         assert_ne!(d.lambda_albedo_voxel, albedo_voxel_off());
         assert_eq!((merged.albedo_init_hue, d.albedo_init_hue), (1.0, 1.0));
         assert_eq!(
+            (merged.trace_back_faces, d.trace_back_faces),
+            (TraceBackFaces::DarkUnseen, TraceBackFaces::DarkUnseen)
+        );
+        assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
             toml::to_string(&merged).unwrap()
         );
@@ -1000,6 +1005,7 @@ mod tests {
         assert_eq!(saved.lambda_albedo_chroma, albedo_chroma_off());
         assert_eq!(saved.lambda_albedo_voxel, albedo_voxel_off());
         assert_eq!(saved.albedo_init_hue, 0.0, "the grey start runs before the setting had");
+        assert_eq!(saved.trace_back_faces, TraceBackFaces::Cull, "the culled tracing runs before the setting had");
 
         std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")
             .unwrap();

@@ -1052,7 +1052,7 @@ pub fn run_until(
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
     if cfg.trace_back_faces == TraceBackFaces::DarkUnseen {
         match state.unseen.iter().filter(|u| **u).count() {
-            _ if state.unseen.is_empty() => tracing::warn!(
+            _ if state.unseen.is_empty() => tracing::info!(
                 "inverse: --trace-back-faces dark-unseen, but this run has no unseen flags (its geometry kept its \
                  orientation, or the checkpoint predates them): back faces are culled"
             ),

@@ -426,9 +426,9 @@ impl Ctx<'_> {
             let (tu, tv, nrm) = (rot[0], rot[1], rot[2]);
             let (sc, op, mu) = (geo.scale, geo.opacity, geo.mean);
             let b = dot(nrm, d);
-            let (back, dark) = match tracer.back_face(h.slot) {
-                Some(dark) if b > 0.0 => (true, dark),
-                _ => (false, false),
+            let (back, dark) = match (b > 0.0).then(|| tracer.back_face(h.slot)).flatten() {
+                Some(dark) => (true, dark),
+                None => (false, false),
             };
             let sign = if back { -1.0 } else { 1.0 };
             // A dark back face's payload is zero: it only occludes.

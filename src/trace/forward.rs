@@ -313,9 +313,9 @@ fn trace_one(
         let n = tracer.slot_normal(h.slot);
         // From behind: the hit is a back face (two-sided or a back occluder), maybe dark.
         let from_behind = n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0;
-        let (back, dark) = match tracer.back_face(h.slot) {
-            Some(dark) if from_behind => (true, dark),
-            _ => (false, false),
+        let (back, dark) = match from_behind.then(|| tracer.back_face(h.slot)).flatten() {
+            Some(dark) => (true, dark),
+            None => (false, false),
         };
         match feat.as_mut() {
             Some((data, ch, of)) => {

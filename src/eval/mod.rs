@@ -105,7 +105,7 @@ fn newest_checkpoint(run: &Path) -> Option<PathBuf> {
 }
 
 /// Warn once per process (a run's surfels are read by several loaders in one command).
-fn warn_once(message: String) {
+pub(crate) fn warn_once(message: String) {
     static SAID: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
     let mut said = SAID.lock().unwrap_or_else(|e| e.into_inner());
     if !said.contains(&message) {
@@ -123,7 +123,12 @@ pub fn load_run_config(run: &Path) -> anyhow::Result<TrainConfig> {
         let ply = run.join("point_cloud.ply");
         let recorded = if ply.is_file() { crate::io::ply::read_ply_filter_inv_square(&ply)? } else { None };
         let filter_inv_square = recorded.unwrap_or_else(crate::raster::filter_inv_square_2dgs);
-        return Ok(TrainConfig { filter_inv_square, ..TrainConfig::default() });
+        // Nor were they oriented by radiogs: no unseen flags, back faces culled.
+        return Ok(TrainConfig {
+            filter_inv_square,
+            trace_back_faces: crate::train::config::TraceBackFaces::Cull,
+            ..TrainConfig::default()
+        });
     }
     let text = std::fs::read_to_string(&path).with_context(|| format!("{}: cannot read", path.display()))?;
     let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| crate::train::config::toml_error(&path, &text, &e))?;

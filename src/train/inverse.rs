@@ -91,15 +91,21 @@ impl From<TraceBackFaces> for BackFaces {
 
 impl BackFaces {
     /// A run's: its config's mode, and with `dark-unseen` the flags saved with its surfels
-    /// (`point_cloud.ply`'s property `unseen`, else the newest checkpoint's), which must exist
-    /// and number `count`.
+    /// (`point_cloud.ply`'s property `unseen`, else the newest checkpoint's), which must number
+    /// `count`; without any, none is unseen (culled, with a warning).
     pub fn of_run(run: &Path, mode: TraceBackFaces, count: usize) -> anyhow::Result<BackFaces> {
         if mode != TraceBackFaces::DarkUnseen {
             return Ok(mode.into());
         }
         let (flags, source) = crate::eval::load_run_unseen(run)?;
-        let flags = flags
-            .with_context(|| format!("{source}: the run traces back faces as dark-unseen but holds no unseen flags"))?;
+        let Some(flags) = flags else {
+            // Surfels written without flags (by hand, a probe, another tool): nothing is known
+            // to be unseen, so the rays cull as they would for a run with none.
+            crate::eval::warn_once(format!(
+                "{source}: the run traces back faces as dark-unseen but holds no unseen flags; culling them all"
+            ));
+            return Ok(mode.into());
+        };
         anyhow::ensure!(
             flags.len() == count,
             "{source}: {} unseen flags for {count} surfels (from another run?)",
@@ -130,8 +136,9 @@ pub struct InverseState {
     pub traced_at: Vec<u32>,
     pub iteration: u32,
     pub extent: f32,
-    /// Per surfel: no training camera saw it when the stage oriented the surfels (empty when
-    /// the geometry kept its own orientation). `--trace-back-faces dark-unseen` uses it.
+    /// Per surfel: no training camera saw it when the stage oriented the surfels (all false
+    /// when the geometry kept its own orientation, or the checkpoint predates the flags).
+    /// `--trace-back-faces dark-unseen` uses it.
     pub unseen: Vec<bool>,
 }
 
@@ -170,7 +177,7 @@ impl InverseState {
         geometry_two_sided: bool,
     ) -> crate::Result<InverseState> {
         let n0 = surfels.len();
-        let mut unseen = Vec::new();
+        let mut unseen = vec![false; n0];
         if geometry_two_sided {
             let o;
             (o, unseen) = orient_surfels(&mut surfels, cameras, cfg.window, cfg.filter_inv_square, 0.01 * extent);
@@ -246,8 +253,7 @@ impl InverseState {
 
     /// How this run's traced rays treat back faces.
     pub fn back_faces(&self, cfg: &TrainConfig) -> BackFaces {
-        let unseen = (!self.unseen.is_empty()).then(|| Arc::from(self.unseen.as_slice()));
-        BackFaces { mode: cfg.trace_back_faces, unseen }
+        BackFaces { mode: cfg.trace_back_faces, unseen: Some(Arc::from(self.unseen.as_slice())) }
     }
 
     pub fn to_checkpoint(&self, cfg: &TrainConfig) -> Checkpoint {
@@ -276,9 +282,7 @@ impl InverseState {
         if !self.cache.sample_weights.is_empty() {
             c.put("cache.sample_weights", self.cache.sample_weights.clone());
         }
-        if !self.unseen.is_empty() {
-            c.put(UNSEEN_BLOB, self.unseen.iter().map(|&u| u as u8 as f32).collect());
-        }
+        c.put(UNSEEN_BLOB, self.unseen.iter().map(|&u| u as u8 as f32).collect());
         c
     }
 
@@ -333,8 +337,9 @@ impl InverseState {
             Some(t) if t.len() == cache.len() => t.iter().map(|&x| x as u32).collect(),
             _ => vec![iteration; cache.len()],
         };
-        let unseen = unseen_flags(path, c)?.unwrap_or_default();
-        if !unseen.is_empty() && unseen.len() != surfels.len() {
+        // Checkpoints from before the flags traced with back faces culled: none unseen.
+        let unseen = unseen_flags(path, c)?.unwrap_or_else(|| vec![false; surfels.len()]);
+        if unseen.len() != surfels.len() {
             return Err(Error::format(
                 path,
                 UNSEEN_BLOB,
@@ -1051,13 +1056,8 @@ pub fn run_until(
     interrupt::install();
     let mut metrics = open_metrics(&cfg.out.join("metrics_inverse.jsonl"), state.iteration)?;
     if cfg.trace_back_faces == TraceBackFaces::DarkUnseen {
-        match state.unseen.iter().filter(|u| **u).count() {
-            _ if state.unseen.is_empty() => tracing::info!(
-                "inverse: --trace-back-faces dark-unseen, but this run has no unseen flags (its geometry kept its \
-                 orientation, or the checkpoint predates them): back faces are culled"
-            ),
-            k => tracing::info!("inverse: the back faces of the {k} unseen surfels block traced rays (dark-unseen)"),
-        }
+        let k = state.unseen.iter().filter(|u| **u).count();
+        tracing::info!("inverse: the back faces of the {k} unseen surfels block traced rays (dark-unseen)");
     }
     let mut tracer = Tracer::build(&state.surfels, &trace_settings_with(&state.back_faces(cfg)));
     let start = cfg.ray_start(state.extent);
@@ -1190,7 +1190,7 @@ pub fn run_until(
     bar.finish_and_clear();
     state.to_checkpoint(cfg).save(&ckpt_path)?;
     if !interrupted {
-        let unseen = (!state.unseen.is_empty()).then_some(&state.unseen[..]);
+        let unseen = Some(&state.unseen[..]);
         write_ply_flagged(&cfg.out.join("point_cloud.ply"), &state.surfels, Some(cfg.filter_inv_square), unseen)?;
         state.env().save(&cfg.out.join("envmap.exr"))?;
     }
@@ -1278,7 +1278,8 @@ mod tests {
     }
 
     /// A run's back faces: a mode other than dark-unseen needs nothing; dark-unseen takes the
-    /// PLY's flags, else the checkpoint's, and names the file when they are missing or miscounted.
+    /// PLY's flags, else the checkpoint's, names the file when they are miscounted and culls
+    /// when there are none.
     #[test]
     fn a_runs_back_faces_take_its_saved_unseen_flags() {
         let run = crate::test_dir::TempDir::new("back-faces");
@@ -1296,9 +1297,12 @@ mod tests {
         assert_eq!(b.unseen.as_deref(), Some(&[true, false, false, false][..]));
         let err = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 5).unwrap_err().to_string();
         assert!(err.contains("point_cloud.ply") && err.contains("4 unseen flags for 5 surfels"), "{err}");
+        // Surfels written without flags: traced as culled (with a warning).
         write_ply_flagged(&ply, &s, None, None).unwrap();
-        let err = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 4).unwrap_err().to_string();
-        assert!(err.contains("point_cloud.ply") && err.contains("no unseen flags"), "{err}");
+        let b = BackFaces::of_run(&run, TraceBackFaces::DarkUnseen, 4).unwrap();
+        assert_eq!(trace_settings_with(&b), trace_settings_with(&TraceBackFaces::Cull.into()));
+        // A folder radiogs did not train (no config.toml) traces culled.
+        assert_eq!(crate::eval::load_run_config(&run).unwrap().trace_back_faces, TraceBackFaces::Cull);
     }
 
     /// The split-sum PBR colour of `SurfelShading` (Lambert Monte Carlo + occluded split-sum

@@ -1,4 +1,4 @@
-"""Shared by albedo_segments.py, indirect_segments.py and shadow_bins.py: sRGB decoding, picture loading and the
+"""Shared by albedo_segments.py, indirect_segments.py, roughness_segments.py and shadow_bins.py: sRGB decoding, picture loading and the
 DATA DIR [VIEWS] arguments, each bad input said by name."""
 import sys, numpy as np
 from PIL import Image

@@ -174,6 +174,7 @@ impl SpecularSamples {
             sample_weights: Some(&self.weights),
             specular: true,
             lambert: false,
+            normalized_specular: false,
             footprints: None,
         }
     }

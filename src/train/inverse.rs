@@ -243,7 +243,7 @@ impl InverseState {
             },
             adam,
             surfels,
-            cache: IncidentCache::default(),
+            cache: IncidentCache { normalized_specular: cfg.specular == Specular::McNormalized, ..Default::default() },
             traced_at: Vec::new(),
             iteration: 0,
             extent,
@@ -308,6 +308,7 @@ impl InverseState {
             indirect: triples("cache.indirect")?,
             // Rows drawn partly from the light's peaks (`env_importance_inverse`) weigh per sample.
             sample_weights: c.blob("cache.sample_weights").map(<[f32]>::to_vec).unwrap_or_default(),
+            normalized_specular: cfg.specular == Specular::McNormalized,
             ..IncidentCache::default()
         };
         if cache.len() != surfels.len() && !cache.is_empty() {
@@ -623,6 +624,7 @@ fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
         detach_lhs: cfg.detach_lhs,
         detach_rhs: cfg.detach_rhs,
         linear_l2: false,
+        normalized_specular: cfg.specular == Specular::McNormalized,
     }
 }
 
@@ -933,7 +935,7 @@ fn follow_light_peaks(cfg: &TrainConfig, state: &mut InverseState) {
 fn split_sum_for(cfg: &TrainConfig, env: &EnvMap) -> crate::Result<Option<SplitSum>> {
     Ok(match cfg.specular {
         Specular::SplitSum => Some(SplitSum::new(env)?),
-        Specular::Mc | Specular::Traced => None,
+        Specular::Mc | Specular::McNormalized | Specular::Traced => None,
     })
 }
 

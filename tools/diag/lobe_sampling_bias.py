@@ -46,20 +46,24 @@ def d_estimate(dirs, wo, r, eps=1e-3):
     e = lambda rr: specular_cos(dirs, wo, rr).sum() * 2 * np.pi * (1 - Z_MIN) / len(dirs)
     return (e(r + eps) - e(r - eps)) / (2 * eps)
 
-try:
-    n_dirs = int(sys.argv[1]) if len(sys.argv) > 1 else 64
-except ValueError:
-    sys.exit(f'N: {sys.argv[1]!r} is not a number of directions')
-if n_dirs < 1:
-    sys.exit(f'N: {n_dirs} directions; at least 1')
-rng = np.random.default_rng(0)
-wo = np.array([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))])
-dense = fibonacci_cap(200_000, 0.0)
-for r in (0.1, 0.2, 0.3, 0.4, 0.5, 0.6):
-    truth = d_estimate(dense, wo, r)
-    per_rotation = []
-    for _ in range(2000):
-        per_rotation.append(d_estimate(fibonacci_cap(n_dirs, rng.uniform(0, 2 * np.pi)), wo, r))
-    per_rotation = np.array(per_rotation)
-    print(f'r {r}: true dE/dr {truth:+.4f}; {n_dirs} directions: positive in {100 * (per_rotation > 0).mean():.0f} % '
-          f'of rotations, median {np.median(per_rotation):+.4f}')
+def main():
+    try:
+        n_dirs = int(sys.argv[1]) if len(sys.argv) > 1 else 64
+    except ValueError:
+        sys.exit(f'N: {sys.argv[1]!r} is not a number of directions')
+    if n_dirs < 1:
+        sys.exit(f'N: {n_dirs} directions; at least 1')
+    rng = np.random.default_rng(0)
+    wo = np.array([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))])
+    dense = fibonacci_cap(200_000, 0.0)
+    for r in (0.1, 0.2, 0.3, 0.4, 0.5, 0.6):
+        truth = d_estimate(dense, wo, r)
+        per_rotation = []
+        for _ in range(2000):
+            per_rotation.append(d_estimate(fibonacci_cap(n_dirs, rng.uniform(0, 2 * np.pi)), wo, r))
+        per_rotation = np.array(per_rotation)
+        print(f'r {r}: true dE/dr {truth:+.4f}; {n_dirs} directions: positive in {100 * (per_rotation > 0).mean():.0f} % '
+              f'of rotations, median {np.median(per_rotation):+.4f}')
+
+if __name__ == '__main__':
+    main()

@@ -167,7 +167,6 @@ impl PbrScene {
         let mut scene = PbrScene::new(surfels, env, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, back_faces);
         scene.draw_from_light_peaks(cfg.env_importance_inverse);
         scene.specular = cfg.specular;
-        scene.cache.normalized_specular = cfg.specular == Specular::McNormalized;
         scene.specular_rays = RENDER_RAYS_FACTOR * cfg.specular_rays;
         scene.filter_inv_square = cfg.filter_inv_square;
         Ok(Some(scene))
@@ -184,7 +183,7 @@ impl PbrScene {
                 };
                 Some(SplitSum::new(&env).expect("H × 2H, H a multiple of 8"))
             }
-            Specular::Mc | Specular::McNormalized | Specular::Traced => None,
+            Specular::Mc | Specular::Traced => None,
         }
     }
 

@@ -265,7 +265,6 @@ pub fn finetune(
         detach_rhs: true,
         // The mean of the noisy targets, not their median (module note).
         linear_l2: true,
-        normalized_specular: false,
     };
     let mut scratch = RcScratch::default();
     let mut mgrads = MaterialGrads::default();
@@ -582,7 +581,6 @@ mod tests {
                 sample_weights: Some(&weights),
                 specular: true,
                 lambert: true,
-                normalized_specular: false,
                 footprints: None,
             };
             let (mut d, mut i) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);

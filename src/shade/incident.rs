@@ -45,8 +45,6 @@ pub struct IncidentCache {
     /// [`prepare_footprints`](Self::prepare_footprints); empty until then and after a refresh.
     pub footprints: Vec<PackedFootprint>,
     pub footprint_size: (usize, usize),
-    /// Shade with the normalised specular lobe (`PbrInputs::normalized_specular`).
-    pub normalized_specular: bool,
 }
 
 /// Which map the cache importance-samples, and how many of each surfel's directions.
@@ -486,7 +484,6 @@ impl IncidentCache {
                 .then_some(&self.sample_weights[..]),
             specular: true,
             lambert: true,
-            normalized_specular: self.normalized_specular,
             footprints: (self.footprints.len() == self.dirs.len()).then_some(CachedFootprints {
                 data: &self.footprints,
                 width: self.footprint_size.0,

@@ -51,14 +51,6 @@ pub struct PbrInputs<'a> {
     /// Include the Lambert lobe in f (true), or only the specular lobe (false: samples drawn
     /// for the specular lobe alone, `traced_specular`).
     pub lambert: bool,
-    /// The specular part as the lobe-weighted mean of the samples' incident radiance times the
-    /// lobe's analytic directional albedo E(n·ω_o, r) (the split-sum LUT):
-    /// E · Σ_s g_s L_s / Σ_s g_s with g_s = w_s f_s(ω_s) n·ω_s, instead of Σ_s g_s L_s. Why: a
-    /// lobe narrower than the samples' spacing is missed by most rotations of S fixed
-    /// directions, so the plain sum grows with roughness ("rougher gathers more") and the
-    /// roughness is pushed up (`tools/diag/lobe_sampling_bias.py`); the ratio keeps the lobe's
-    /// energy exact at every roughness and leaves only the radiance's variation over the lobe.
-    pub normalized_specular: bool,
     /// Optional env footprints of `dirs` (N·S), used when the env has their size: the same
     /// lookups without the per-sample direction → pixel mapping.
     pub footprints: Option<CachedFootprints<'a>>,
@@ -279,8 +271,6 @@ pub fn shade_one(inp: &PbrInputs, env: &LaneEnv, i: usize) -> (V3, V3) {
     let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(splat);
     let lobe = inp.specular.then(|| Lobe::new(r, n, wo));
     let (mut direct, mut indirect) = ([f64x8::ZERO; 3], [f64x8::ZERO; 3]);
-    // The normalised lobe's sums: Σ g (g = wc·spec), Σ g·V·Le, Σ g·L_ind.
-    let (mut lobe_w, mut lobe_d, mut lobe_i) = (f64x8::ZERO, [f64x8::ZERO; 3], [f64x8::ZERO; 3]);
     for k0 in (i * s..(i + 1) * s).step_by(LANES) {
         let len = (i * s + s - k0).min(LANES);
         let b = load_block(inp, env, footprints, n, k0, len, None);
@@ -288,46 +278,13 @@ pub fn shade_one(inp: &PbrInputs, env: &LaneEnv, i: usize) -> (V3, V3) {
             Some(l) => l.eval(b.dirs),
             None => f64x8::ZERO,
         };
-        if inp.normalized_specular {
-            let g = b.wc * spec;
-            lobe_w += g;
-            for ch in 0..3 {
-                direct[ch] += b.wc * lambert[ch] * b.vis * b.le[ch];
-                indirect[ch] += b.wc * lambert[ch] * b.li[ch];
-                lobe_d[ch] += g * b.vis * b.le[ch];
-                lobe_i[ch] += g * b.li[ch];
-            }
-        } else {
-            for ch in 0..3 {
-                let fw = b.wc * (lambert[ch] + spec);
-                direct[ch] += fw * b.vis * b.le[ch];
-                indirect[ch] += fw * b.li[ch];
-            }
-        }
-    }
-    let (mut direct, mut indirect) = (direct.map(lane_sum), indirect.map(lane_sum));
-    if inp.normalized_specular && inp.specular {
-        let k = normalized_scale(lane_sum(lobe_w), n, wo, r).0;
-        let (lobe_d, lobe_i) = (lobe_d.map(lane_sum), lobe_i.map(lane_sum));
         for ch in 0..3 {
-            direct[ch] += k * lobe_d[ch];
-            indirect[ch] += k * lobe_i[ch];
+            let fw = b.wc * (lambert[ch] + spec);
+            direct[ch] += fw * b.vis * b.le[ch];
+            indirect[ch] += fw * b.li[ch];
         }
     }
-    (direct, indirect)
-}
-
-/// The normalised lobe's factor E(n·ω_o, r) / Σ g for the sum of sample weights Σ g, with E
-/// and its derivatives (∂E/∂(n·ω_o), ∂E/∂r): (factor, E, ∂E/∂nov, ∂E/∂r). A surfel whose lobe
-/// weighs nothing (no live sample) gets factor 0: no specular light, no gradient.
-#[inline]
-fn normalized_scale(lobe_w: f64, n: V3, wo: V3, r: f64) -> (f64, f64, f64, f64) {
-    // E = 1 − the Lambert weight (brdf.rs: kd = 1 − E from the split-sum LUT).
-    let (kd, dkd_dnov, dkd_dr) = brdf::diffuse_weight(dot(n, wo), r);
-    if lobe_w <= 1e-300 {
-        return (0.0, 0.0, 0.0, 0.0);
-    }
-    ((1.0 - kd) / lobe_w, 1.0 - kd, -dkd_dnov, -dkd_dr)
+    (direct.map(lane_sum), indirect.map(lane_sum))
 }
 
 /// Forward: writes L_direct and L_indirect per surfel (L_pbr = their sum).
@@ -367,28 +324,6 @@ fn backward_one(
     let lobe = inp.specular.then(|| Lobe::new(r, n, wo));
     let (v_dir8, v_ind8) = (v_dir.map(splat), v_ind.map(splat));
     let (incident, env_grad) = (!v_vis.is_empty(), !detach.env && !v_env.is_empty());
-    // The normalised lobe (see `PbrInputs::normalized_specular`): a first pass for its sums;
-    // then spec_k = E/Σg scales each sample's lobe and m = Σ_ch v·(Σ g·L)/Σg is ∂loss/∂E.
-    // Point-sampled: spec_k = 1, m = 0 (the same formulas).
-    let normalized = inp.normalized_specular && inp.specular;
-    let (mut spec_k, mut m, mut e_grad) = (1.0, 0.0, (0.0, 0.0));
-    if let Some(l) = lobe.as_ref().filter(|_| normalized) {
-        let (mut lobe_w, mut lobe_vg) = (f64x8::ZERO, f64x8::ZERO);
-        for k0 in (i * s..(i + 1) * s).step_by(LANES) {
-            let len = (i * s + s - k0).min(LANES);
-            let b = load_block(inp, env, footprints, n, k0, len, None);
-            let g = b.wc * l.eval(b.dirs);
-            lobe_w += g;
-            for ch in 0..3 {
-                lobe_vg += g * (v_dir8[ch] * b.vis * b.le[ch] + v_ind8[ch] * b.li[ch]);
-            }
-        }
-        let (lobe_w, lobe_vg) = (lane_sum(lobe_w), lane_sum(lobe_vg));
-        let (k, _, de_dnov, de_dr) = normalized_scale(lobe_w, n, wo, r);
-        spec_k = k;
-        m = if k > 0.0 { lobe_vg / lobe_w } else { 0.0 };
-        e_grad = (m * de_dnov, m * de_dr);
-    }
     // Lane accumulators; Σ_s v_f (the Lambert lobe's gradient) is chained once per surfel below.
     let (mut vr, mut vn, mut vwo, mut v_lambert) = (f64x8::ZERO, [f64x8::ZERO; 3], [f64x8::ZERO; 3], [f64x8::ZERO; 3]);
     let mut fps = [Footprint { index: [0; 4], weight: [0.0; 4] }; LANES];
@@ -399,18 +334,15 @@ fn backward_one(
         // lobe's upstream gradient v_f = wc·g does not depend on f.
         let g: [f64x8; 3] = std::array::from_fn(|ch| v_dir8[ch] * b.vis * b.le[ch] + v_ind8[ch] * b.li[ch]);
         let v_f: [f64x8; 3] = std::array::from_fn(|ch| g[ch] * b.wc);
-        // The lobe's upstream: Σ_ch v_f, normalised wc·spec_k·(Σ_ch g − m) (the mean's shift).
-        let v_lobe =
-            if normalized { b.wc * splat(spec_k) * (g[0] + g[1] + g[2] - splat(m)) } else { v_f[0] + v_f[1] + v_f[2] };
         let spec = match &lobe {
             Some(l) => {
-                let lg = l.eval_with_backward(b.dirs, v_lobe);
+                let lg = l.eval_with_backward(b.dirs, v_f[0] + v_f[1] + v_f[2]);
                 vr += lg.v_roughness;
                 for c in 0..3 {
                     vn[c] += lg.v_n[c];
                     vwo[c] += lg.v_wo[c];
                 }
-                lg.spec * splat(spec_k)
+                lg.spec
             }
             None => f64x8::ZERO,
         };
@@ -418,7 +350,7 @@ fn backward_one(
         for ch in 0..3 {
             v_lambert[ch] += v_f[ch];
         }
-        let v_c = b.w * (f[0] * g[0] + f[1] * g[1] + f[2] * g[2] - spec * splat(m));
+        let v_c = b.w * (f[0] * g[0] + f[1] * g[1] + f[2] * g[2]);
         for c in 0..3 {
             vn[c] += b.dirs[c] * v_c;
         }
@@ -453,9 +385,9 @@ fn backward_one(
     // lambert = a·kd(NoV, r)/π.
     let mut va = scale(v_lambert, kd * std::f64::consts::FRAC_1_PI);
     let v_kd = dot(v_lambert, a) * std::f64::consts::FRAC_1_PI;
-    vr += v_kd * dkd_dr + e_grad.1;
-    vn = add(vn, scale(wo, v_kd * dkd_dnov + e_grad.0));
-    vwo = add(vwo, scale(n, v_kd * dkd_dnov + e_grad.0));
+    vr += v_kd * dkd_dr;
+    vn = add(vn, scale(wo, v_kd * dkd_dnov));
+    vwo = add(vwo, scale(n, v_kd * dkd_dnov));
     if detach.material {
         va = [0.0; 3];
         vr = 0.0;
@@ -670,7 +602,6 @@ mod tests {
     use rand::RngExt;
     use std::f64::consts::PI;
 
-    #[derive(Clone)]
     struct Case {
         albedo: Vec<[f32; 3]>,
         rough: Vec<f32>,
@@ -683,7 +614,6 @@ mod tests {
         weight: f32,
         specular: bool,
         lambert: bool,
-        normalized_specular: bool,
         /// Per-sample weights instead of `weight` (importance sampling).
         sample_weights: Option<Vec<f32>>,
     }
@@ -703,7 +633,6 @@ mod tests {
                 sample_weights: self.sample_weights.as_deref(),
                 specular: self.specular,
                 lambert: self.lambert,
-                normalized_specular: self.normalized_specular,
                 footprints: None,
             }
         }
@@ -748,7 +677,6 @@ mod tests {
             weight: weight as f32,
             specular: true,
             lambert: true,
-            normalized_specular: false,
             sample_weights: None,
         }
     }
@@ -925,32 +853,12 @@ mod tests {
         check_backward_with(true, true, false, 13)
     }
 
-    /// The normalised lobe (a ratio of two sums over the samples, times the LUT's E): with the
-    /// Lambert lobe, over a partial block; and alone with importance weights. The random case
-    /// holds a narrow lobe (r = 0.08), a near-rough one (0.99) and a direction under the
-    /// horizon.
-    #[test]
-    fn backward_of_the_normalized_lobe_matches_finite_differences() {
-        check_backward_normalized(true, true, false, 13, true);
-        check_backward_normalized(true, false, true, 16, true);
-    }
-
     fn check_backward_with(specular: bool, lambert: bool, weighted: bool, samples: usize) {
-        check_backward_normalized(specular, lambert, weighted, samples, false);
-    }
-
-    fn check_backward_normalized(
-        specular: bool,
-        lambert: bool,
-        weighted: bool,
-        samples: usize,
-        normalized_specular: bool,
-    ) {
         let random_case = |n, s, seed| {
             let c = random_case(n, s, seed);
             let mut rg = rng(seed ^ 0x5eed);
             let sample_weights = weighted.then(|| (0..n * s).map(|_| rg.random_range(0.05..2.0f32)).collect());
-            Case { specular, lambert, normalized_specular, sample_weights, ..c }
+            Case { specular, lambert, sample_weights, ..c }
         };
         let env = random_env(16, 32, 2);
         let case = random_case(5, samples, 3);
@@ -1014,87 +922,6 @@ mod tests {
             }
         }
         assert!(nonzero > 30);
-    }
-
-    /// Under a constant light, unoccluded, the normalised lobe returns the LUT's directional
-    /// albedo E(n·ω_o, r) × the light for any set of directions, the narrow lobe (r = 0.05)
-    /// that 64 directions miss included; the same for a constant indirect light.
-    #[test]
-    fn normalized_lobe_under_a_constant_light_is_the_luts_albedo() {
-        let (light, bounce) = ([0.7f32, 1.3, 2.0], [0.2f32, 0.5, 0.9]);
-        let env = EnvMap::constant(32, 16, light);
-        for (seed, r) in [(1u64, 0.05f32), (2, 0.3), (3, 0.9)] {
-            let mut case = random_case(6, 64, seed);
-            case.rough = vec![r; 6];
-            case.vis = vec![1.0; case.vis.len()];
-            case.ind = vec![bounce; case.ind.len()];
-            let point = Case { lambert: false, ..random_case(6, 64, seed) };
-            let case = Case { lambert: false, normalized_specular: true, ..case };
-            let (mut d, mut ind) = (vec![[0.0; 3]; 6], vec![[0.0; 3]; 6]);
-            shade_surfels(&case.inputs(), &env, &mut d, &mut ind).unwrap();
-            let mut spread = 0.0f64;
-            for i in 0..6 {
-                let e = 1.0 - brdf::diffuse_weight(dot(to64(case.normal[i]), to64(case.view[i])), r as f64).0;
-                for ch in 0..3 {
-                    assert!(close(d[i][ch] as f64, e * light[ch] as f64, 1e-5, 1e-7), "r {r}: {} vs {}", d[i][ch], e);
-                    assert!(close(ind[i][ch] as f64, e * bounce[ch] as f64, 1e-5, 1e-7), "r {r}: indirect");
-                }
-                let plain = shade_one(
-                    &Case { rough: vec![r; 6], vis: vec![1.0; 6 * 64], ..point.clone() }.inputs(),
-                    &LaneEnv::new(&env),
-                    i,
-                )
-                .0;
-                spread = spread.max((plain[0] / (e * light[0] as f64) - 1.0).abs());
-            }
-            if r == 0.05 {
-                // The point-sampled sum is far off for the narrow lobe (what the ratio fixes).
-                assert!(spread > 0.5, "point-sampled sum within {spread} of E");
-            }
-        }
-    }
-
-    /// The normalised lobe against a scalar reference written from its definition,
-    /// E · Σ g L / Σ g with g = w · f_s · n·ω (brdf.rs's scalar lobe, `EnvMap::lookup`), on
-    /// random surfels, incident light and importance weights.
-    #[test]
-    fn normalized_lobe_matches_a_scalar_reference() {
-        let env = random_env(16, 32, 9);
-        let mut rg = rng(10);
-        let s = 24;
-        let case = random_case(7, s, 11);
-        let case = Case {
-            lambert: false,
-            normalized_specular: true,
-            sample_weights: Some((0..7 * s).map(|_| rg.random_range(0.05..2.0f32)).collect()),
-            ..case
-        };
-        let (mut d, mut ind) = (vec![[0.0; 3]; 7], vec![[0.0; 3]; 7]);
-        shade_surfels(&case.inputs(), &env, &mut d, &mut ind).unwrap();
-        for i in 0..7 {
-            let (n, wo, r) = (to64(case.normal[i]), to64(case.view[i]), case.rough[i] as f64);
-            let (mut sum_g, mut sum_d, mut sum_i) = (0.0, [0.0f64; 3], [0.0f64; 3]);
-            for k in i * s..(i + 1) * s {
-                let wi = to64(case.dirs[k]);
-                let c = dot(n, wi);
-                if c <= 0.0 {
-                    continue;
-                }
-                let g = case.sample_weights.as_ref().unwrap()[k] as f64 * brdf::specular(r, n, wo, wi) * c;
-                sum_g += g;
-                let le = to64(env.lookup(case.dirs[k]));
-                for ch in 0..3 {
-                    sum_d[ch] += g * case.vis[k] as f64 * le[ch];
-                    sum_i[ch] += g * case.ind[k][ch] as f64;
-                }
-            }
-            let e = 1.0 - brdf::diffuse_weight(dot(n, wo), r).0;
-            for ch in 0..3 {
-                let (want_d, want_i) = (e * sum_d[ch] / sum_g, e * sum_i[ch] / sum_g);
-                assert!(close(d[i][ch] as f64, want_d, 1e-5, 1e-7), "surfel {i}: {} vs {want_d}", d[i][ch]);
-                assert!(close(ind[i][ch] as f64, want_i, 1e-5, 1e-7), "surfel {i}: {} vs {want_i}", ind[i][ch]);
-            }
-        }
     }
 
     #[test]
@@ -1226,7 +1053,6 @@ mod tests {
                 weight: weight as f32,
                 specular: true,
                 lambert: true,
-                normalized_specular: false,
                 sample_weights: None,
             };
             let (mut od, mut oi) = (vec![[0.0; 3]; reps], vec![[0.0; 3]; reps]);

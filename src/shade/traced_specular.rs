@@ -174,7 +174,6 @@ impl SpecularSamples {
             sample_weights: Some(&self.weights),
             specular: true,
             lambert: false,
-            normalized_specular: false,
             footprints: None,
         }
     }

@@ -53,11 +53,6 @@ pub enum TraceBackFaces {
 pub enum Specular {
     /// Monte Carlo over the cached S directions, like the diffuse lobe (the published method).
     Mc,
-    /// As `mc`, normalised: the lobe-weighted mean of the same S directions' incident light
-    /// times the lobe's analytic directional albedo (the split-sum LUT). Not in the published
-    /// method: S shared directions miss a lobe narrower than their spacing, and the plain sum's
-    /// roughness gradient then says "rougher gathers more".
-    McNormalized,
     /// Split-sum: the env prefiltered by roughness at the reflection direction × the GGX LUT,
     /// scaled by the surfel's cached visibility, plus its mean indirect light for the occluded
     /// part. The diffuse lobe stays Monte Carlo with traced visibility and indirect light.

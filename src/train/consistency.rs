@@ -88,8 +88,6 @@ pub struct RcSettings {
     /// estimate (16 rays) and whose L1 fit would settle on its median, dropping a sun that a
     /// step's rays usually miss.
     pub linear_l2: bool,
-    /// The specular lobe normalised (`PbrInputs::normalized_specular`).
-    pub normalized_specular: bool,
 }
 
 /// Buffers reused across calls.
@@ -232,7 +230,6 @@ pub fn radiometric_consistency(
         sample_weights: None,
         specular: true,
         lambert: true,
-        normalized_specular: cfg.normalized_specular,
         footprints: None,
     };
     sc.direct.resize(m, [0.0; 3]);
@@ -469,7 +466,6 @@ mod tests {
             detach_lhs: false,
             detach_rhs: false,
             linear_l2,
-            normalized_specular: false,
         };
         let (_, v, mats, v_env) = loss_and_grads(&s, &env, &cfg);
         let f = |t: &Surfels, e: &EnvMap| loss_and_grads(t, e, &cfg).0 as f64;
@@ -565,7 +561,6 @@ mod tests {
             detach_lhs: false,
             detach_rhs: false,
             linear_l2: false,
-            normalized_specular: false,
         };
         let (_, v, mats, v_env) = loss_and_grads(&s, &env, &base);
         assert!(mats.v_albedo.iter().any(|a| a[0] != 0.0) && v_env.iter().any(|t| t[0] != 0.0));

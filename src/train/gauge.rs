@@ -183,7 +183,7 @@ pub fn fit(cfg: &TrainConfig, state: &InverseState, images: &TrainImages) -> Gau
     let env_s = env.box_downsample(sample_factor(cfg));
     let split_sum = match cfg.specular {
         Specular::SplitSum => Some(SplitSum::new(&env).expect("the learned env is a valid map")),
-        Specular::Mc | Specular::McNormalized | Specular::Traced => None,
+        Specular::Mc | Specular::Traced => None,
     };
     let tracer = (cfg.specular == Specular::Traced)
         .then(|| Tracer::build(&state.surfels, &super::inverse::trace_settings_with(&state.back_faces(cfg))));
@@ -383,7 +383,6 @@ mod tests {
                 sample_weights: None,
                 specular,
                 lambert: true,
-                normalized_specular: false,
                 footprints: None,
             };
             let (mut d, mut i) = (vec![[0.0f32; 3]; n], vec![[0.0f32; 3]; n]);

@@ -243,7 +243,7 @@ impl InverseState {
             },
             adam,
             surfels,
-            cache: IncidentCache { normalized_specular: cfg.specular == Specular::McNormalized, ..Default::default() },
+            cache: IncidentCache::default(),
             traced_at: Vec::new(),
             iteration: 0,
             extent,
@@ -308,7 +308,6 @@ impl InverseState {
             indirect: triples("cache.indirect")?,
             // Rows drawn partly from the light's peaks (`env_importance_inverse`) weigh per sample.
             sample_weights: c.blob("cache.sample_weights").map(<[f32]>::to_vec).unwrap_or_default(),
-            normalized_specular: cfg.specular == Specular::McNormalized,
             ..IncidentCache::default()
         };
         if cache.len() != surfels.len() && !cache.is_empty() {
@@ -624,7 +623,6 @@ fn rc_settings(cfg: &TrainConfig, extent: f32) -> RcSettings {
         detach_lhs: cfg.detach_lhs,
         detach_rhs: cfg.detach_rhs,
         linear_l2: false,
-        normalized_specular: cfg.specular == Specular::McNormalized,
     }
 }
 
@@ -935,7 +933,7 @@ fn follow_light_peaks(cfg: &TrainConfig, state: &mut InverseState) {
 fn split_sum_for(cfg: &TrainConfig, env: &EnvMap) -> crate::Result<Option<SplitSum>> {
     Ok(match cfg.specular {
         Specular::SplitSum => Some(SplitSum::new(env)?),
-        Specular::Mc | Specular::McNormalized | Specular::Traced => None,
+        Specular::Mc | Specular::Traced => None,
     })
 }
 

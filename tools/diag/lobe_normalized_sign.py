@@ -1,6 +1,7 @@
 """The sign of the roughness derivative of a 64-direction cache row's specular estimate, point-
-sampled (Σ g L, the default `--specular mc`) against normalised (E · Σ g L / Σ g, `--specular
-mc-normalized`; E the lobe's directional albedo, g = f_s cos · weight), beside the true
+sampled (Σ g L, `--specular mc`) against normalised (E · Σ g L / Σ g; E the lobe's directional
+albedo, g = f_s cos · weight; session 70's `--specular mc-normalized`, commit 9621f08, reverted:
+in runs it did not make roughness learn, BENCHMARKS.md), beside the true
 derivative (200 000 directions), under five lights: white, a sky 1 + z, a spot of 15° and of 5°
 at the mirror direction, a 15° spot 40° away from it. View 30° off the normal, 300 random
 rotations of the Fibonacci cap per roughness. Prints the share of rotations whose derivative is

@@ -13,7 +13,9 @@ r ≤ 0.2 are 80–100 % too (the truth's sign varies). A cache row keeps its ro
 re-traced (at most `--cache-every` 200 iterations later), and meanwhile the optimiser follows
 that rotation's sign, so under the cache's lobe a roughness below ≈ 0.4 is pushed up. With the
 consistency's 16 directions (fresh each iteration): 99 / 78 / 58 / 18 / 0 % at r = 0.1 / 0.3 /
-0.4 / 0.5 / 0.6."""
+0.4 / 0.5 / 0.6.
+Session 70: a lobe with the true sign (lobe_normalized_sign.py), built into the inverse stage,
+left the glossy spheres where this one does, so this sign is not what holds roughness there."""
 import sys
 import numpy as np
 

@@ -14,16 +14,10 @@ at r = 0.1: 90 %; its truth there is −0.0018), its size
 smaller than the truth's for lobes narrower than the spacing (r = 0.1 under the 5° spot:
 median −0.32 against −26.3); the point-sampled one is positive in 80–99 % of rotations at
 r ≤ 0.2 whatever the truth."""
-import sys
 import numpy as np
-from lobe_sampling_bias import Z_MIN, fibonacci_cap, specular_cos
+from lobe_sampling_bias import Z_MIN, directions_argument, fibonacci_cap, specular_cos
 
-try:
-    n_dirs = int(sys.argv[1]) if len(sys.argv) > 1 else 64
-except ValueError:
-    sys.exit(f'N: {sys.argv[1]!r} is not a number of directions')
-if n_dirs < 1:
-    sys.exit(f'N: {n_dirs} directions; at least 1')
+n_dirs = directions_argument()
 wo = np.array([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))])
 mirror = np.array([-wo[0], 0.0, wo[2]])
 away = np.array([np.sin(np.radians(10)), 0.0, np.cos(np.radians(10))])  # 40° from the mirror

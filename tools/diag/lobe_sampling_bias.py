@@ -48,13 +48,18 @@ def d_estimate(dirs, wo, r, eps=1e-3):
     e = lambda rr: specular_cos(dirs, wo, rr).sum() * 2 * np.pi * (1 - Z_MIN) / len(dirs)
     return (e(r + eps) - e(r - eps)) / (2 * eps)
 
-def main():
+def directions_argument():
+    """The optional first argument N (directions per estimate, default 64), checked."""
     try:
         n_dirs = int(sys.argv[1]) if len(sys.argv) > 1 else 64
     except ValueError:
         sys.exit(f'N: {sys.argv[1]!r} is not a number of directions')
     if n_dirs < 1:
         sys.exit(f'N: {n_dirs} directions; at least 1')
+    return n_dirs
+
+def main():
+    n_dirs = directions_argument()
     rng = np.random.default_rng(0)
     wo = np.array([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))])
     dense = fibonacci_cap(200_000, 0.0)

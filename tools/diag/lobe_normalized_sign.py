@@ -1,4 +1,4 @@
-"""The sign of the roughness derivative of a 64-direction cache row's specular estimate, point-
+"""The sign of the roughness derivative of an N-direction cache row's specular estimate, point-
 sampled (Σ g L, `--specular mc`) against normalised (E · Σ g L / Σ g; E the lobe's directional
 albedo, g = f_s cos · weight; session 70's `--specular mc-normalized`, commit 9621f08, reverted:
 in runs it did not make roughness learn, BENCHMARKS.md), beside the true

@@ -9,7 +9,8 @@ as eval's normal MAE does (mean over all pixels, background 0). Prints
   true surface sampled at pixel centres misses by this much;
 - ours and that truth split by each pixel's distance (1..6 px, 7+) to the nearest jump in the
   ground-truth normal (over 20°) or mask: how much of the MAE is rounded creases and rims.
-Session 64: cornell's default run 5.53°, half of it within 6 px of an edge; floor 1.03°."""
+Session 64: cornell's default run 5.53°, half of it within 6 px of an edge; floor 1.03°.
+On a `radiogs synth` dataset (its own object list) only ours is split (session 71)."""
 import json, os, sys
 import numpy as np
 from diag_common import args, load
@@ -83,6 +84,12 @@ def angle_error(p, g, mask):
 def main():
     data, evaldir, views = args('normal_edges.py DATA RUN/eval [VIEWS]', 16)
     meta = read_json(os.path.join(data, 'README.json'))
+    # `radiogs synth` writes its own object list (no Blender 'location'/'params'): there the
+    # truth-at-pixel-centres column is left out and only ours is split by edge distance.
+    blender = all('location' in ob and 'params' in ob for ob in meta.get('objects', []))
+    if not blender:
+        print(f'{data}/README.json: not a Blender object list (a `radiogs synth` dataset?): '
+              'the truth-at-pixel-centres column is left out')
     bands = 7
     sums = {'ours': np.zeros(bands + 1), 'truth': np.zeros(bands + 1)}
     counts, pixels = np.zeros(bands + 1), 0
@@ -95,7 +102,8 @@ def main():
         x, y = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
         # Blender camera: looks along −z, +y up.
         d = unit(np.stack([(x - w / 2) / f, -(y - h / 2) / f, -np.ones_like(x)], -1).reshape(-1, 3) @ c2w[:3, :3].T)
-        truth = hits(meta['objects'], np.broadcast_to(c2w[:3, 3], d.shape), d).reshape(h, w, 3)
+        truth = (hits(meta['objects'], np.broadcast_to(c2w[:3, 3], d.shape), d).reshape(h, w, 3)
+                 if blender else None)
         gt = load(os.path.join(folder, 'normal.png')) / 255
         mask = gt[..., 3] >= 0.5
         gn = unit(gt[..., :3] * 2 - 1)
@@ -111,20 +119,24 @@ def main():
                     near |= ((gn * sn).sum(-1) < np.cos(np.radians(20))) | (sm != mask)
             band[near] = r
         for name, pred in (('ours', ours), ('truth', truth)):
+            if pred is None:
+                continue
             e = angle_error(pred, gn, mask)
             for b in range(1, bands + 1):
                 sums[name][b] += e[(band == b) & mask].sum()
         for b in range(1, bands + 1):
             counts[b] += ((band == b) & mask).sum()
         pixels += w * h
-    print(f'{evaldir}: normal MAE {sums["ours"].sum() / pixels:.2f}°; the true geometry at pixel centres '
-          f'against normal.png (the floor) {sums["truth"].sum() / pixels:.2f}° ({views} views)')
-    print('px from an edge   pixels   ours: mean°  share°   truth: mean°  share°')
+    floor = (f'; the true geometry at pixel centres against normal.png (the floor) '
+             f'{sums["truth"].sum() / pixels:.2f}°' if blender else '')
+    print(f'{evaldir}: normal MAE {sums["ours"].sum() / pixels:.2f}°{floor} ({views} views)')
+    print('px from an edge   pixels   ours: mean°  share°' + ('   truth: mean°  share°' if blender else ''))
     for b in range(1, bands + 1):
         n = max(counts[b], 1)
         label = f'{b}' if b < bands else f'{bands}+'
+        truth = f'   {sums["truth"][b] / n:11.1f}  {sums["truth"][b] / pixels:6.2f}' if blender else ''
         print(f'{label:>15}  {counts[b] / pixels * 100:6.1f}%   {sums["ours"][b] / n:10.1f}  {sums["ours"][b] / pixels:6.2f}'
-              f'   {sums["truth"][b] / n:11.1f}  {sums["truth"][b] / pixels:6.2f}')
+              + truth)
 
 if __name__ == '__main__':
     main()

@@ -18,8 +18,10 @@ Throw-away diagnostics (numpy, PIL, OpenEXR); not part of the build or tests. Se
 synthetic spheres at the defaults: direct 3.27 / 1.57 / 1.16 / 1.00 × the truth from deep shadow
 to full light, indirect 0.69–0.73 × in the shadows; started from the true light and kept sharp
 by sampling its sun (`--env-importance-inverse 0.25`), the shadows' direct excess stays
-(3.26 / 1.53); the truth blurred at σ = 3 px shows 3.45 / 1.60 / 1.11 / 0.99, i.e. the excess
-is what per-surfel shading (one value per surfel, blended over its footprint) looks like."""
+(3.26 / 1.53); the truth blurred at σ = 3 px shows 3.45 / 1.60 / 1.11 / 0.99. That match is not the cause:
+surfels 40 % smaller leave the excess as it was, and `examples/probe_shadow_blur` (session 72)
+splits it into the normals at the objects' feet, the traced visibility's leaks and the learned
+light; shading once per surfel costs little of it."""
 import os, sys
 import numpy as np
 from diag_common import args, lin, load

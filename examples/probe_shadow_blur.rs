@@ -208,30 +208,22 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The light box-filtered to TABLE_HEIGHT × 2·TABLE_HEIGHT texels: (direction, luminance × solid
-/// angle) per texel.
+/// The light box-filtered to TABLE_HEIGHT rows (`EnvMap::box_downsample`; a map whose height
+/// TABLE_HEIGHT does not divide is taken as it is): (direction, luminance × solid angle) per
+/// texel.
 fn texel_table(env: &radiogs::envmap::EnvMap) -> Vec<([f64; 3], f64)> {
-    let (h, w) = (TABLE_HEIGHT, 2 * TABLE_HEIGHT);
-    let (fx, fy) = ((env.width / w).max(1), (env.height / h).max(1));
-    let grid = radiogs::envmap::EnvMap { width: w, height: h, texels: Vec::new() };
-    let lum = |l: [f32; 3]| (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64;
-    let exact = fx * w == env.width && fy * h == env.height;
-    let mut table = Vec::with_capacity(w * h);
-    for j in 0..h {
-        for i in 0..w {
-            let d = grid.texel_dir(i, j);
-            let l = if exact {
-                let mut acc = 0.0;
-                for y in j * fy..(j + 1) * fy {
-                    for x in i * fx..(i + 1) * fx {
-                        acc += lum(env.texels[y * env.width + x]);
-                    }
-                }
-                acc / (fx * fy) as f64
-            } else {
-                lum(env.lookup(d))
-            };
-            table.push((d.map(|x| x as f64), l * grid.texel_solid_angle(j) as f64));
+    let factor = if env.height % TABLE_HEIGHT == 0 && env.width % (env.height / TABLE_HEIGHT) == 0 {
+        env.height / TABLE_HEIGHT
+    } else {
+        1
+    };
+    let grid = env.box_downsample(factor);
+    let mut table = Vec::with_capacity(grid.width * grid.height);
+    for j in 0..grid.height {
+        for i in 0..grid.width {
+            let l = grid.texels[j * grid.width + i];
+            let lum = (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64;
+            table.push((grid.texel_dir(i, j).map(|x| x as f64), lum * grid.texel_solid_angle(j) as f64));
         }
     }
     table

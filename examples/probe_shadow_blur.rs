@@ -7,7 +7,8 @@
 //! - the truth at the surfel's foot point on the true surface (what shading once per surfel and
 //!   compositing costs by itself);
 //! - the shader's estimator (its cached directions, the 10°-floor spiral's solid angle per
-//!   sample) with the true light and the exact visibility, about the true normal, then ours;
+//!   sample) with the true light and the exact visibility, weighted by the true normal's cosine,
+//!   then by ours (the directions, drawn about our normal, are the same);
 //! - the same with the cached (traced) visibility: the shader under the true light;
 //! - the same under the learned light;
 //! - the learned light with the exact visibility and normal (texel sums).
@@ -18,7 +19,7 @@
 //! mask, as `tools/diag/direct_share.py` does. Needs a README.json object list (a `radiogs
 //! synth` scene; VIEWS test views, 6 by default, about a minute on 2 cores). Session 72,
 //! synthetic spheres at the defaults, deep shadow (share < 0.2) / 0.2–0.5: truth at the feet
-//! 1.55 / 1.03, the estimator 1.26 / 1.00 with the true normal and 1.93 / 1.07 with ours, with
+//! 1.55 / 1.03, the estimator 1.26 / 1.00 with the true normal's cosine and 1.93 / 1.07 with ours, with
 //! the cached visibility 2.38 / 1.20, under the learned light 2.65 / 1.31.
 //!
 //!     cargo run --release --example probe_shadow_blur -- RUN DATA [VIEWS]

@@ -17,10 +17,11 @@
 //! light), each ratio over the truth divided by the fully lit bin's (the learned light's scale is
 //! free); beside them the per-pixel truth blurred by a Gaussian of σ = 1, 2, 3 px inside the
 //! mask, as `tools/diag/direct_share.py` does. Needs a README.json object list (a `radiogs
-//! synth` scene; VIEWS test views, 6 by default, about a minute on 2 cores). Session 72,
-//! synthetic spheres at the defaults, deep shadow (share < 0.2) / 0.2–0.5: truth at the feet
-//! 1.55 / 1.03, the estimator 1.26 / 1.00 with the true normal's cosine and 1.93 / 1.07 with ours, with
-//! the cached visibility 2.38 / 1.20, under the learned light 2.65 / 1.31.
+//! synth` scene or `../shared/data`'s); VIEWS test views, 6 by default, about a minute on 2
+//! cores. Session 72, synthetic spheres at the defaults, deep shadow (share < 0.2) / 0.2–0.5:
+//! truth at the feet 1.55 / 1.03, the estimator 1.26 / 1.00 with the true normal's cosine and
+//! 1.93 / 1.07 with ours, with the cached visibility 2.38 / 1.20, under the learned light 2.65 /
+//! 1.31.
 //!
 //!     cargo run --release --example probe_shadow_blur -- RUN DATA [VIEWS]
 

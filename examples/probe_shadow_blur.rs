@@ -92,14 +92,8 @@ fn main() -> anyhow::Result<()> {
     // per-sample solid angle) under the true light and under the learned one; the learned light
     // with the true visibility and normal at the foot point.
     let learned_table = texel_table(&scene.env);
-    let learned_lum = |d: [f32; 3]| {
-        let l = scene.env.lookup(d);
-        (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64
-    };
-    let true_lum = |d: [f32; 3]| {
-        let l = true_env.lookup(d);
-        (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64
-    };
+    let learned_lum = |d: [f32; 3]| luminance(scene.env.lookup(d));
+    let true_lum = |d: [f32; 3]| luminance(true_env.lookup(d));
     let cap = 2.0 * std::f64::consts::PI * (1.0 - MIN_ELEVATION_DEG.to_radians().sin());
     let s = &scene.surfels;
     let ns = scene.cache.samples;
@@ -223,12 +217,16 @@ fn texel_table(env: &radiogs::envmap::EnvMap) -> Vec<([f64; 3], f64)> {
     let mut table = Vec::with_capacity(grid.width * grid.height);
     for j in 0..grid.height {
         for i in 0..grid.width {
-            let l = grid.texels[j * grid.width + i];
-            let lum = (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64;
+            let lum = luminance(grid.texels[j * grid.width + i]);
             table.push((grid.texel_dir(i, j).map(|x| x as f64), lum * grid.texel_solid_angle(j) as f64));
         }
     }
     table
+}
+
+/// Rec. 709 luminance of a linear RGB radiance.
+fn luminance(l: [f32; 3]) -> f64 {
+    (0.2126 * l[0] + 0.7152 * l[1] + 0.0722 * l[2]) as f64
 }
 
 /// Gaussian blur of `v` restricted to `mask` (normalised convolution), separable.

@@ -5,9 +5,10 @@ loss fits the median of that noisy target, not its mean. Under a learned sun the
 of an unoccluded surfel's irradiance is the one whose few rays miss the sun.
 Prints, per env map, normal and ray count, the median / mean of the estimate over 3000 rotations,
 the share of rotations under the mean, and the coefficient of variation.
-usage: rc_median_bias.py ENVMAP.exr [ENVMAP.exr ...]   (env RAYS=16,32,64 sets the ray counts)
+usage: rc_median_bias.py MAP.exr|MAP.hdr [...]   (env RAYS=16,32,64 sets the ray counts)
 
-Throw-away diagnostics (numpy + OpenEXR); not part of the build or tests. Session 74, learned maps
+Throw-away diagnostics (numpy; OpenEXR for .exr; reads maps with env_peak.py and draws the spiral
+with lobe_sampling_bias.py, both beside it); not part of the build or tests. Session 74, learned maps
 of the synthetic scenes (sun ≈ 26–28 × the map's mean, 2.7 % of the cap holding 30 % of an
 up-facing surfel's light): at 16 rays the up-facing median is 0.92 (spheres) / 0.95 (cornell) of
 the mean, cv 0.30–0.33; at 32 rays 0.99–1.005, at 64 rays 1.00 (cv 0.02–0.03). The shared scenes'
@@ -15,13 +16,13 @@ learned lights have no texel over 10.4 × their mean: up-facing 0.99 (spheres, c
 (cornell, cv 0.15) at 16 rays.
 """
 import os, sys
-import numpy as np, OpenEXR
+import numpy as np
+from env_peak import read_map                 # .hdr / .exr with clear errors
+from lobe_sampling_bias import Z_MIN, fibonacci_cap  # the cache's spiral about +z, its 10° floor
 
 
 def load_luminance(path):
-    ch = OpenEXR.File(path).parts[0].channels
-    key = 'RGB' if 'RGB' in ch else next(iter(ch))
-    return np.asarray(ch[key].pixels, dtype=np.float64)[..., :3].mean(-1)
+    return read_map(path).mean(-1)
 
 
 def lookup(env, d):
@@ -38,23 +39,24 @@ def lookup(env, d):
             + at(y0 + 1, x0) * (1 - fx) * fy + at(y0 + 1, x0 + 1) * fx * fy)
 
 
-def spiral(n, count, rotation, floor_deg=10.0):
-    """The cap spiral of src/shade/sampling.rs (`ElevationFloor::Spread`) and its weight Ω_cap/S."""
-    z_min = np.sin(np.radians(floor_deg))
-    i = np.arange(count)
-    z = 1 - (1 - z_min) * (i + 0.5) / count
-    phi = i * np.pi * (3 - np.sqrt(5)) + rotation
+def spiral(n, count, rotation):
+    """The spiral about +z turned onto the normal n, and its weight Ω_cap/S."""
+    local = fibonacci_cap(count, rotation)
     a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
     t = np.cross(n, a)
     t /= np.linalg.norm(t)
     b = np.cross(n, t)
-    r = np.sqrt(1 - z * z)
-    dirs = (r * np.cos(phi))[:, None] * t + (r * np.sin(phi))[:, None] * b + z[:, None] * n
-    return dirs, 2 * np.pi * (1 - z_min) / count
+    dirs = local[:, :1] * t + local[:, 1:2] * b + local[:, 2:] * n
+    return dirs, 2 * np.pi * (1 - Z_MIN) / count
 
 
 def main():
-    counts = [int(c) for c in os.environ.get('RAYS', '16,32,64').split(',')]
+    if len(sys.argv) < 2:
+        sys.exit(__doc__.split('\n\n')[0])
+    try:
+        counts = [int(c) for c in os.environ.get('RAYS', '16,32,64').split(',')]
+    except ValueError:
+        sys.exit(f"RAYS={os.environ['RAYS']}: expected ray counts separated by commas, e.g. 16,32,64")
     rng = np.random.default_rng(0)
     for path in sys.argv[1:]:
         env = load_luminance(path)

@@ -284,8 +284,9 @@ pub struct TrainConfig {
     /// Radiometric consistency: traced rays per surfel [64]; equal to `pbr_samples` lets the
     /// traced rows overwrite the cache. Under a learned sun, 16 rays usually miss it, and the L1
     /// residual fits that skewed target's median (5–8 % under its mean), which keeps lifting the
-    /// indirect light as the stage runs; 32 or 64 rays do not (BENCHMARKS.md, session 74).
-    #[arg(long, default_value_t = 16)]
+    /// indirect light as the stage runs; 32 rays do not, for 11 % more stage time
+    /// (BENCHMARKS.md, sessions 74–75).
+    #[arg(long, default_value_t = 32)]
     pub rc_rays: usize,
     /// λ_rc [0.2]; 0 gives the ablation "without radiometric consistency".
     #[arg(long, default_value_t = 0.2)]

@@ -1,0 +1,229 @@
+//! Diagnostic: is the floor's indirect light short because of visibility or of radiance?
+//! For a subset of the upward-facing floor surfels of a `radiogs synth` run (nearest object
+//! the README's floor, within 15 mm of it), every cached direction is re-cast from the
+//! surfel's foot point on the true floor into the synth scene. Where it truly hits an object,
+//! the true radiance leaving that hit towards the floor is path-traced (the dataset's
+//! integrator and training env) and set beside our cached indirect radiance (the composited
+//! SH colour, decoded, already weighted by 1 − T). Prints Σ ours / Σ truth, and how much of
+//! the gap the opacity (1 − T) explains, per hit object and per height of the true hit's
+//! normal (undersides are what no camera sees).
+//!
+//!     cargo run --release --example probe_incident_truth -- RUN DATA [STRIDE] [PATHS]
+//!
+//! STRIDE (default 25): every STRIDE-th floor surfel; PATHS (default 64): paths per hit.
+
+#[path = "common/probe_run.rs"]
+mod probe_run;
+#[path = "common/scene_readme.rs"]
+mod scene_readme;
+
+use anyhow::Context;
+use glam::Vec3;
+use radiogs::pbr_scene::PbrScene;
+use radiogs::synth::envlight::EnvLight;
+use radiogs::synth::geometry::Ray as SynthRay;
+use radiogs::synth::integrator::{RenderOptions, trace_path};
+use radiogs::synth::sampling::pixel_rng;
+
+#[derive(Default, Clone, Copy)]
+struct Sums {
+    rays: usize,
+    ours: f64,
+    truth: f64,
+    opacity: f64,
+}
+
+impl Sums {
+    fn add(&mut self, ours: f64, truth: f64, opacity: f64) {
+        self.rays += 1;
+        self.ours += ours;
+        self.truth += truth;
+        self.opacity += opacity;
+    }
+    fn line(&self, name: &str) {
+        if self.rays == 0 {
+            return;
+        }
+        let op = self.opacity / self.rays as f64;
+        println!(
+            "{name:28} {:7} rays | ours {:.4} truth {:.4} | ours / truth {:.3} | mean 1 − T {:.3} | radiance ratio (ours / (1 − T) / truth) {:.3}",
+            self.rays,
+            self.ours / self.rays as f64,
+            self.truth / self.rays as f64,
+            self.ours / self.truth,
+            op,
+            self.ours / op / self.truth
+        );
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    let probe_run::ProbeRun { run, data, cfg, extent, surfels, back_faces } =
+        probe_run::from_args("probe_incident_truth")?;
+    let args: Vec<String> = std::env::args().collect();
+    let stride: usize = args.get(3).map(|s| s.parse()).transpose().context("STRIDE")?.unwrap_or(25).max(1);
+    let paths: u32 = args.get(4).map(|s| s.parse()).transpose().context("PATHS")?.unwrap_or(64).max(1);
+    let readme = scene_readme::load(&data)?;
+    let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data.join("README.json"))?)?;
+    let scene_name = info["args"]["scene"].as_str().context("README.json: args.scene")?;
+    let scene =
+        radiogs::synth::scene::build(scene_name).with_context(|| format!("unknown synth scene {scene_name}"))?;
+    let env_map = radiogs::envmap::EnvMap::load(&readme.train_env_path(&data))?;
+    let env = EnvLight::new("train", env_map);
+    let opts = RenderOptions { spp: 1, max_bounces: 8, rr_start: 3 };
+
+    let learned = radiogs::envmap::EnvMap::load(&run.join("envmap.exr"))?;
+    let factor = radiogs::train::inverse::sample_factor(&cfg);
+    let start = cfg.ray_start(extent);
+    let pbr = PbrScene::new(surfels, learned, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, back_faces);
+    let ns = pbr.cache.samples;
+    let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
+
+    let mut rows = Vec::new();
+    for i in 0..pbr.surfels.len() {
+        let p = pbr.surfels.means[i].map(|x| x as f64);
+        if scene_readme::nearest(&readme.objects, p) != floor {
+            continue;
+        }
+        let o = &readme.objects[floor];
+        let d = o.sdf(p);
+        let e = 1e-4;
+        let up = (o.sdf([p[0], p[1], p[2] + e]) - d) / e;
+        if d.abs() > 0.015 || up < 0.7 || pbr.surfels.normal(i)[2] < 0.7 {
+            continue;
+        }
+        // The foot point on the true floor.
+        rows.push((i, Vec3::new(p[0] as f32, p[1] as f32, (p[2] - d) as f32)));
+    }
+    let picked: Vec<_> = rows.iter().step_by(stride).copied().collect();
+    println!("{} floor surfels facing up, {} probed, {paths} paths per true hit", rows.len(), picked.len());
+
+    use rayon::prelude::*;
+    let names: Vec<String> = readme.objects.iter().map(|o| o.object.clone()).collect();
+    let per_row: Vec<Vec<(usize, usize, f64, f64, f64)>> = picked
+        .par_iter()
+        .map(|&(i, foot)| {
+            let mut out = Vec::new();
+            for q in 0..ns {
+                let d = Vec3::from(pbr.cache.dirs[i * ns + q]);
+                if d.z <= 0.0 {
+                    continue;
+                }
+                let ray = SynthRay { o: foot + 1e-4 * Vec3::Z, d };
+                let Some(hit) = scene.intersect(&ray, f32::INFINITY) else {
+                    continue;
+                };
+                let object = scene_readme::nearest(&readme.objects, hit.p.to_array().map(|x| x as f64));
+                let mut rng = pixel_rng(7, i as u64, q as u64);
+                let mut truth = Vec3::ZERO;
+                for _ in 0..paths {
+                    let (dl, il) = trace_path(&scene, &env, hit, d, &opts, &mut rng);
+                    truth += dl + il;
+                }
+                let truth = truth / paths as f32;
+                let ours = pbr.cache.indirect[i * ns + q];
+                let opacity = 1.0 - pbr.cache.visibility[i * ns + q];
+                // Where the true hit's normal points: below −0.3 is an underside.
+                let band = ((hit.ng.z + 1.0) * 2.0).floor().clamp(0.0, 3.0) as usize;
+                let g = |v: [f32; 3]| (v[0] + v[1] + v[2]) as f64 / 3.0;
+                out.push((object, band, g(ours), g(truth.to_array()), opacity as f64));
+            }
+            out
+        })
+        .collect();
+    let mut all = Sums::default();
+    let mut by_object = vec![Sums::default(); names.len()];
+    let mut by_band = [Sums::default(); 4];
+    for &(object, band, ours, truth, opacity) in per_row.iter().flatten() {
+        all.add(ours, truth, opacity);
+        by_object[object].add(ours, truth, opacity);
+        by_band[band].add(ours, truth, opacity);
+    }
+    println!("run {} (rays skip surfels < {:?} above the tangent plane)", run.display(), start.skip_margin);
+    all.line("all truly blocked rays");
+    for (name, s) in names.iter().zip(&by_object) {
+        s.line(name);
+    }
+    for (b, s) in by_band.iter().enumerate() {
+        s.line(&format!("hit normal z in [{:.1}, {:.1})", b as f32 * 0.5 - 1.0, b as f32 * 0.5 - 0.5));
+    }
+    // How much of the true indirect irradiance arrives below the cached directions' 10° floor.
+    let z_min = (radiogs::shade::sampling::MIN_ELEVATION_DEG.to_radians().sin()) as f32;
+    let band_paths = (paths / 4).max(1);
+    let per_surfel: Vec<[f64; 5]> = picked
+        .par_iter()
+        .map(|&(i, foot)| {
+            let mut rng = pixel_rng(11, i as u64, 0);
+            // [indirect in the band, in the cap, env (unblocked) in the band, in the cap]
+            let mut e = [0.0f64; 4];
+            for (part, lo, hi, m) in [(0usize, 0.0f32, z_min, 64usize), (1, z_min, 1.0, 128)] {
+                let weight = 2.0 * std::f64::consts::PI * (hi - lo) as f64 / m as f64;
+                for k in 0..m {
+                    use rand::RngExt;
+                    let z = lo + (hi - lo) * (k as f32 + rng.random::<f32>()) / m as f32;
+                    let phi = 2.0 * std::f32::consts::PI * rng.random::<f32>();
+                    let r = (1.0 - z * z).max(0.0).sqrt();
+                    let d = Vec3::new(r * phi.cos(), r * phi.sin(), z);
+                    let ray = SynthRay { o: foot + 1e-4 * Vec3::Z, d };
+                    match scene.intersect(&ray, f32::INFINITY) {
+                        Some(hit) => {
+                            let mut l = Vec3::ZERO;
+                            for _ in 0..band_paths {
+                                let (dl, il) = trace_path(&scene, &env, hit, d, &opts, &mut rng);
+                                l += dl + il;
+                            }
+                            e[part] += weight * (l.element_sum() / 3.0 / band_paths as f32 * z) as f64;
+                        }
+                        None => e[2 + part] += weight * (env.eval(d).element_sum() / 3.0 * z) as f64,
+                    }
+                }
+            }
+            // Our estimate of the same indirect irradiance, as the shader weighs the cache.
+            let n = pbr.surfels.normal(i);
+            let mut ours = 0.0f64;
+            for k in i * ns..(i + 1) * ns {
+                let d = pbr.cache.dirs[k];
+                let c = (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]).max(0.0) as f64;
+                let w =
+                    if pbr.cache.sample_weights.is_empty() { pbr.cache.weight } else { pbr.cache.sample_weights[k] };
+                let l = pbr.cache.indirect[k];
+                ours += w as f64 * c * (l[0] + l[1] + l[2]) as f64 / 3.0;
+            }
+            [e[0], e[1], e[2], e[3], ours]
+        })
+        .collect();
+    let tot = per_surfel.iter().fold([0.0f64; 4], |a, e| [a[0] + e[0], a[1] + e[1], a[2] + e[2], a[3] + e[3]]);
+    println!(
+        "true irradiance below the {:.0}° floor, share of the total: indirect (from objects) {:.3}, env {:.3}",
+        radiogs::shade::sampling::MIN_ELEVATION_DEG,
+        tot[0] / (tot[0] + tot[1]),
+        tot[2] / (tot[2] + tot[3])
+    );
+    // Our indirect irradiance against the truth's (whole hemisphere), by the truth's level.
+    let truth_e: Vec<f64> = per_surfel.iter().map(|e| e[0] + e[1]).collect();
+    let mut sorted = truth_e.clone();
+    sorted.sort_by(f64::total_cmp);
+    let q = |f: f64| sorted[((sorted.len() - 1) as f64 * f) as usize];
+    let edges = [0.0, q(0.5), q(0.8), q(0.95), f64::INFINITY];
+    println!("indirect irradiance ours / truth (whole hemisphere), surfels binned by the truth's:");
+    for b in 0..4 {
+        let (mut o, mut t, mut c) = (0.0, 0.0, 0);
+        for (e, &te) in per_surfel.iter().zip(&truth_e) {
+            if te >= edges[b] && te < edges[b + 1] {
+                o += e[4];
+                t += te;
+                c += 1;
+            }
+        }
+        println!(
+            "  truth E in [{:.4}, {:.4}): {c:5} surfels, ours / truth {:.3}, share of the truth {:.2}",
+            edges[b],
+            edges[b + 1],
+            o / t,
+            t / truth_e.iter().sum::<f64>()
+        );
+    }
+    let o: f64 = per_surfel.iter().map(|e| e[4]).sum();
+    println!("  all: ours / truth {:.3}", o / truth_e.iter().sum::<f64>());
+    Ok(())
+}

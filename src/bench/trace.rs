@@ -43,6 +43,10 @@ pub struct TraceBenchArgs {
     /// plane, as the PBR stages' rays do (`ray_skip_margin` × extent); 0 = off.
     #[arg(long, default_value_t = 0.0)]
     pub skip_margin: f32,
+    /// Back faces within this many degrees past edge-on are still hit (the PBR stages'
+    /// `--trace-grazing`); 0 = strict one-sided culling.
+    #[arg(long, default_value_t = 0.0)]
+    pub grazing: f32,
 }
 
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq)]
@@ -185,7 +189,9 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
         args.skip_margin.is_finite() && args.skip_margin >= 0.0,
         "bench trace: --skip-margin must be finite and ≥ 0"
     );
-    let settings = TraceSettings { chunk: args.chunk, ..TraceSettings::default() };
+    anyhow::ensure!((0.0..=45.0).contains(&args.grazing), "bench trace: --grazing must be in [0, 45] degrees");
+    let grazing_sin = args.grazing.to_radians().sin();
+    let settings = TraceSettings { chunk: args.chunk, grazing_sin, ..TraceSettings::default() };
     let scenes: Vec<(&str, Surfels)> = match (&args.ply, args.scene) {
         (Some(path), _) => vec![("ply", crate::io::ply::read_ply(path)?)],
         (None, SceneChoice::Surface) => vec![("surface", scene("surface", 7))],

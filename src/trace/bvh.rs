@@ -269,6 +269,18 @@ fn leaf_ref(nd: &Node) -> u32 {
     LEAF_BIT | nd.right_or_first
 }
 
+/// The cones widened by the grazing tolerance γ = asin(`grazing_sin`): a ray then skips a
+/// subtree only when every face in it is more than γ past edge-on, as the leaves test.
+fn widened(mut cones: Vec<NormalCone>, grazing_sin: f32) -> Vec<NormalCone> {
+    if grazing_sin > 0.0 {
+        let angle = grazing_sin.min(1.0).asin();
+        for c in cones.iter_mut().filter(|c| c.angle >= 0.0) {
+            c.angle += angle;
+        }
+    }
+    cones
+}
+
 /// Collapse the BVH2 into an 8-wide BVH: each wide node takes up to 8 BVH2 descendants,
 /// opening the interior descendant of largest area first (the standard greedy collapse).
 fn collapse(nodes: &[Node], cones: &[NormalCone]) -> (Vec<WideNode>, Vec<[u32; W]>) {
@@ -535,7 +547,7 @@ impl Tracer {
             nd.right_or_first = blocks.len() as u32;
             blocks.push(block);
         }
-        let (wide, wide_src) = collapse(&nodes, &normal_cones(&nodes, &blocks));
+        let (wide, wide_src) = collapse(&nodes, &widened(normal_cones(&nodes, &blocks), settings.grazing_sin));
         let mut t =
             Tracer { settings: settings.clone(), nodes, wide, wide_src, blocks, count: n, built_cost: 0.0, cost: 0.0 };
         t.cost = t.sah_cost();
@@ -583,7 +595,7 @@ impl Tracer {
             self.nodes[k].max = [b[3], b[4], b[5]];
         }
         let nodes = &self.nodes;
-        let cones = normal_cones(nodes, &self.blocks);
+        let cones = widened(normal_cones(nodes, &self.blocks), self.settings.grazing_sin);
         self.wide.par_iter_mut().zip(self.wide_src.par_iter()).for_each(|(w, src)| {
             for (j, &b) in src.iter().enumerate() {
                 if b != u32::MAX {
@@ -636,8 +648,9 @@ pub(crate) struct PreparedRay {
     pub o: [f32; 3],
     pub d: [f32; 3],
     pub inv_d: [f32; 3],
-    /// d / |d| (zero for a zero direction), for the normal-cone test.
+    /// d / |d| (zero for a zero direction), for the normal-cone test, and |d|.
     pub d_unit: [f32; 3],
+    pub len: f32,
     /// The ray's [`Ray::skip_below`](crate::trace::Ray::skip_below) plane, and whether it is set.
     pub skip: [f32; 4],
     pub skips: bool,
@@ -647,7 +660,7 @@ impl PreparedRay {
     pub fn new(o: [f32; 3], d: [f32; 3]) -> Self {
         let len = dot(d, d).sqrt();
         let d_unit = if len > 0.0 { d.map(|x| x / len) } else { [0.0; 3] };
-        PreparedRay { o, d, inv_d: d.map(|x| 1.0 / x), d_unit, skip: [0.0; 4], skips: false }
+        PreparedRay { o, d, inv_d: d.map(|x| 1.0 / x), d_unit, len, skip: [0.0; 4], skips: false }
     }
 
     pub fn from_ray(ray: &crate::trace::Ray) -> Self {
@@ -897,13 +910,15 @@ impl Tracer {
         let v = |a: &[f32; W]| f32x8::from(*a);
         let d = r.d.map(f32x8::splat);
         let zero = f32x8::ZERO;
-        // Facing: one-sided rays only hit faces with n·d < 0 (and back occluders with
-        // n·d > 0); two-sided any with n·d ≠ 0.
+        // Facing: one-sided rays only hit faces with n·d < |d| sin γ (front faces and back
+        // faces within the grazing tolerance) and back occluders with n·d > 0; two-sided any
+        // with n·d ≠ 0 (unused lanes have a zero normal, so n·d = 0).
         let b = v(&p.normal[0]) * d[0] + v(&p.normal[1]) * d[1] + v(&p.normal[2]) * d[2];
         let facing = if self.settings.two_sided {
             b.simd_ne(zero).to_bitmask()
         } else {
-            b.simd_lt(zero).to_bitmask() | (b.simd_gt(zero).to_bitmask() & p.back_lanes)
+            let graze = f32x8::splat(self.settings.grazing_sin * r.len);
+            (b.simd_lt(graze) & b.simd_ne(zero)).to_bitmask() | (b.simd_gt(zero).to_bitmask() & p.back_lanes)
         };
         if facing == 0 {
             return;
@@ -989,14 +1004,19 @@ impl Tracer {
     }
 
     /// How a hit from behind (n·d > 0) on the primitive in `slot` composites: None when back
-    /// faces are culled, else Some(dark) — dark ones occlude but carry no payload.
+    /// faces are culled, else Some(dark) — dark ones occlude but carry no payload. One-sided,
+    /// a back occluder is dark and any other back face hit is a grazing one (not dark).
     #[inline]
     pub(crate) fn back_face(&self, slot: u32) -> Option<bool> {
         if self.settings.two_sided {
             return Some(self.settings.dark_back_faces);
         }
         let (b, l) = (slot as usize / W, slot as usize % W);
-        (self.blocks[b].back_lanes & (1 << l) != 0).then_some(true)
+        if self.blocks[b].back_lanes & (1 << l) != 0 {
+            Some(true)
+        } else {
+            (self.settings.grazing_sin > 0.0).then_some(false)
+        }
     }
 
     /// Plain closest-hit traversal (nearest valid hit beyond t_min): the benchmark's baseline.

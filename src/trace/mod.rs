@@ -64,6 +64,12 @@ pub struct TraceSettings {
     /// payload is the light arriving along the ray (the PBR stages' indirect light), not an
     /// sRGB picture: decoding a composite instead darkens partial hits (the EOTF is convex).
     pub linear_radiance: bool,
+    /// One-sided tracing: sin γ of a grazing tolerance γ. A face seen from behind at most γ
+    /// past edge-on (0 < n·d̂ < sin γ) is still hit, composited like a two-sided back face
+    /// (its colour, the normal flipped); back occluders stay dark. A fuzzy surfel shell seen
+    /// nearly edge-on shows back faces among its tilted surfels, and culling them lets rays
+    /// that graze an object leak through it. 0 = strict culling.
+    pub grazing_sin: f32,
 }
 
 impl Default for TraceSettings {
@@ -78,6 +84,7 @@ impl Default for TraceSettings {
             t_max: f32::INFINITY,
             rebuild_ratio: 1.5,
             linear_radiance: false,
+            grazing_sin: 0.0,
         }
     }
 }

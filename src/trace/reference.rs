@@ -65,7 +65,10 @@ pub fn all_hits(s: &Surfels, ray: &Ray, settings: &TraceSettings) -> Vec<(RefHit
         let raw = op * (-0.5 * rho).exp();
         let alpha = raw.min(ALPHA_MAX as f64);
         let occluder = !settings.two_sided && settings.back_occluders.as_ref().is_some_and(|f| f[i]);
-        let facing = b < 0.0 || ((settings.two_sided || occluder) && b > 0.0);
+        // One-sided: back faces within the grazing tolerance count too (b < |d| sin γ).
+        let graze = settings.grazing_sin as f64 * dot(d, d).sqrt();
+        let facing =
+            (b < 0.0 || (!settings.two_sided && b > 0.0 && b < graze)) || ((settings.two_sided || occluder) && b > 0.0);
         let sk = ray.skip_below.map(|x| x as f64);
         // A zero normal is no plane (whatever its offset), as in the fast path.
         let plane = sk[0] != 0.0 || sk[1] != 0.0 || sk[2] != 0.0;
@@ -84,6 +87,7 @@ pub fn all_hits(s: &Surfels, ray: &Ray, settings: &TraceSettings) -> Vec<(RefHit
 /// Composite one ray by brute force. `features`: surfels × channels.
 pub fn trace_ref(s: &Surfels, ray: &Ray, settings: &TraceSettings, features: Option<(&[f32], usize)>) -> RefOutput {
     let all = all_hits(s, ray, settings);
+    let graze = settings.grazing_sin as f64 * ray.dir.map(|x| x as f64).iter().map(|x| x * x).sum::<f64>().sqrt();
     let mut fragile = false;
     for (h, _) in &all {
         let rel = |a: f64, b: f64| (a - b).abs() <= 1e-4 * b.abs().max(1e-6);
@@ -91,6 +95,7 @@ pub fn trace_ref(s: &Surfels, ray: &Ray, settings: &TraceSettings, features: Opt
             || rel(h.raw, ALPHA_MAX as f64)
             || (h.t - settings.t_min as f64).abs() < 1e-5
             || (h.cos.abs() < 1e-5)
+            || (settings.grazing_sin > 0.0 && (h.cos - graze).abs() < 1e-5)
         {
             fragile = true;
         }

@@ -401,8 +401,10 @@ fn refit_matches_a_fresh_build() {
 
 /// A scene along +z whose hits are all away from the discontinuities (α = 1/255 edge, α clamp,
 /// depth ties, grazing culls) for the given rays, so the outputs are smooth there.
-fn fd_scene(seed: u64, two_sided: bool, grazing: bool) -> (Surfels, Vec<Ray>, TraceSettings) {
-    let settings = TraceSettings { chunk: 2, min_transmittance: 0.0, two_sided, ..Default::default() };
+/// `grazing_sin` > 0: surfel 3 is turned so that some rays hit it from behind within that
+/// grazing tolerance (one-sided), and at least one ray must.
+fn fd_scene(seed: u64, two_sided: bool, grazing: bool, grazing_sin: f32) -> (Surfels, Vec<Ray>, TraceSettings) {
+    let settings = TraceSettings { chunk: 2, min_transmittance: 0.0, two_sided, grazing_sin, ..Default::default() };
     for attempt in 0..200u64 {
         let mut rng = Pcg64::seed_from_u64(seed * 1000 + attempt);
         let mut s = Surfels::default();
@@ -411,6 +413,9 @@ fn fd_scene(seed: u64, two_sided: bool, grazing: bool) -> (Surfels, Vec<Ray>, Tr
             let mut n = [rng.random_range(-0.5..0.5f32), rng.random_range(-0.5..0.5f32), -1.0];
             if grazing && k == 2 {
                 n = [1.0, 0.0, -0.12];
+            }
+            if grazing_sin > 0.0 && k == 3 {
+                n = [1.0, 0.0, 0.15];
             }
             if two_sided && k % 2 == 1 {
                 n[2] = -n[2];
@@ -436,6 +441,7 @@ fn fd_scene(seed: u64, two_sided: bool, grazing: bool) -> (Surfels, Vec<Ray>, Tr
                 Ray { origin, dir: d.map(|x| x / l), ..Default::default() }
             })
             .collect();
+        let back_hit = |ray: &Ray| all_hits(&s, ray, &settings).iter().any(|(h, valid)| *valid && h.cos > 0.0);
         let good = rays.iter().all(|ray| {
             let all = all_hits(&s, ray, &settings);
             let mut ts: Vec<f64> = Vec::new();
@@ -445,13 +451,17 @@ fn fd_scene(seed: u64, two_sided: bool, grazing: bool) -> (Surfels, Vec<Ray>, Tr
                 if h.cos.abs() < 0.05 || (h.rho - r2).abs() < 0.5 || h.t.abs() < 0.05 {
                     return false;
                 }
+                // Clear of the grazing tolerance's edge (unit ray directions).
+                if grazing_sin > 0.0 && (h.cos - grazing_sin as f64).abs() < 0.05 {
+                    return false;
+                }
                 if *valid {
                     ts.push(h.t);
                 }
             }
             ts.sort_by(f64::total_cmp);
             ts.len() >= 2 && ts.windows(2).all(|w| w[1] - w[0] > 0.02)
-        });
+        }) && (grazing_sin == 0.0 || rays.iter().any(back_hit));
         if good {
             return (s, rays, settings);
         }
@@ -506,7 +516,12 @@ fn fd_check_with(
     tweak: fn(&mut TraceSettings),
     skip_z: Option<f32>,
 ) {
-    let (s, mut rays, mut settings) = fd_scene(seed, two_sided, grazing);
+    let grazing_sin = {
+        let mut t = TraceSettings::default();
+        tweak(&mut t);
+        t.grazing_sin
+    };
+    let (s, mut rays, mut settings) = fd_scene(seed, two_sided, grazing, grazing_sin);
     if let Some(z) = skip_z {
         rays.iter_mut().for_each(|r| r.skip_below = [0.0, 0.0, 1.0, z]);
     }
@@ -655,6 +670,37 @@ fn gradients_match_finite_differences_two_sided_and_grazing() {
     fd_check(4, false, true, 0);
 }
 
+/// Back faces hit within the grazing tolerance (one-sided): composited with their colour and
+/// the normal flipped, and differentiated like any hit (surfel 3 is hit from behind).
+#[test]
+fn gradients_match_finite_differences_with_grazing_back_faces() {
+    fd_check_with(8, false, false, 0, |s| s.grazing_sin = 0.34, None);
+    fd_check_with(9, false, true, 2, |s| (s.grazing_sin, s.linear_radiance) = (0.34, true), None);
+}
+
+/// The grazing tolerance against brute force, on shells whose leaving rays the normal cones
+/// cull most (the cones must widen by the tolerance) and with back occluders beside it; and it
+/// does change what the rays hit.
+#[test]
+fn grazing_back_faces_match_brute_force() {
+    let s = shell_scene(900, 61);
+    let rays = leaving_rays(&s, 800, 62);
+    let strict = TraceSettings::default();
+    for (deg, chunk) in [(10.0f32, 32), (25.0, 3)] {
+        let graze = TraceSettings { grazing_sin: deg.to_radians().sin(), chunk, ..Default::default() };
+        let changed =
+            rays.iter().filter(|r| trace_ref(&s, r, &graze, None).hits != trace_ref(&s, r, &strict, None).hits).count();
+        assert!(changed * 50 > rays.len(), "{deg}°: the tolerance changed only {changed} of {} rays", rays.len());
+        compare_with_reference(&s, &rays, &graze, None);
+        let flags: Vec<bool> = (0..s.len()).map(|i| i % 3 == 0).collect();
+        let occluders = TraceSettings { back_occluders: Some(flags.into()), linear_radiance: true, ..graze.clone() };
+        compare_with_reference(&s, &rays, &occluders, None);
+    }
+    let random = random_scene(400, 63, 3);
+    let graze = TraceSettings { grazing_sin: 0.2, ..Default::default() };
+    compare_with_reference(&random, &random_rays(600, 64, &random), &graze, None);
+}
+
 #[test]
 fn gradients_match_finite_differences_with_linear_radiance() {
     fd_check_with(7, false, false, 0, |s| s.linear_radiance = true, None);
@@ -783,7 +829,7 @@ fn feature_gradients_match_finite_differences() {
 fn gradients_with_ray_origin_on_a_surfel() {
     // The ray starts on surfel 0 (skipped by t_min); perturbing the origin must not make it
     // appear, so the gradients stay those of the other surfels.
-    let (mut s, mut rays, settings) = fd_scene(6, false, false);
+    let (mut s, mut rays, settings) = fd_scene(6, false, false, 0.0);
     rays.truncate(1);
     let o = rays[0].origin;
     s.means[0] = [o[0] + 0.01, o[1] - 0.01, o[2]];

@@ -482,6 +482,14 @@ pub struct TrainConfig {
     #[arg(long, value_enum, default_value_t = TraceBackFaces::DarkUnseen)]
     #[serde(default)]
     pub trace_back_faces: TraceBackFaces,
+    /// One-sided back-face modes: traced rays still hit back faces seen at most this many
+    /// degrees past edge-on, composited with their colour (0 = strict culling, as RadioGS). A
+    /// trained surface is a fuzzy shell of tilted surfels: where a ray grazes an object many
+    /// of them show their back, and culling them lets it leak through (BENCHMARKS.md, session
+    /// 75). Runs saved before the setting load as 0.
+    #[arg(long, default_value_t = 20.0)]
+    #[serde(default = "grazing_off")]
+    pub trace_grazing: f32,
     /// The inverse stage drops the geometry's surfels whose largest blend weight (α T) over
     /// every training pixel is below this when it starts (0 = keep all, the default): hidden
     /// layers and faint fringes no view shows, which every later render and trace pays for
@@ -506,6 +514,11 @@ fn lambda_normal_2dgs() -> f32 {
 
 /// What every run before `lambda_albedo_voxel` used: no such prior.
 fn albedo_voxel_off() -> f32 {
+    0.0
+}
+
+/// What runs saved before `trace_grazing` traced with: strict culling.
+fn grazing_off() -> f32 {
     0.0
 }
 
@@ -747,6 +760,9 @@ impl TrainConfig {
         if self.rc_surfels == 0 {
             return bad("rc_surfels", "must be at least 1".into());
         }
+        if !(0.0..=45.0).contains(&self.trace_grazing) {
+            return bad("trace_grazing", format!("{} is not in [0, 45] degrees", self.trace_grazing));
+        }
         if !(1..=256).contains(&self.rc_rays) {
             return bad("rc_rays", format!("{} is not in 1..=256", self.rc_rays));
         }
@@ -985,6 +1001,8 @@ mod tests {
             (merged.trace_back_faces, d.trace_back_faces),
             (TraceBackFaces::DarkUnseen, TraceBackFaces::DarkUnseen)
         );
+        assert_eq!((merged.trace_grazing, d.trace_grazing), (20.0, 20.0));
+        assert_ne!(d.trace_grazing, grazing_off());
         assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
             toml::to_string(&merged).unwrap()
@@ -1009,6 +1027,7 @@ mod tests {
         assert_eq!(saved.lambda_albedo_voxel, albedo_voxel_off());
         assert_eq!(saved.albedo_init_hue, 0.0, "the grey start runs before the setting had");
         assert_eq!(saved.trace_back_faces, TraceBackFaces::Cull, "the culled tracing runs before the setting had");
+        assert_eq!(saved.trace_grazing, 0.0, "the strict culling runs before the setting had");
 
         std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")
             .unwrap();

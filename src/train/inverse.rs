@@ -81,11 +81,14 @@ pub fn trace_settings() -> TraceSettings {
 pub struct BackFaces {
     pub mode: TraceBackFaces,
     pub unseen: Option<Arc<[bool]>>,
+    /// One-sided modes: back faces within this many degrees past edge-on are still hit
+    /// (`--trace-grazing`; [`TraceSettings::grazing_sin`]).
+    pub grazing_deg: f32,
 }
 
 impl From<TraceBackFaces> for BackFaces {
     fn from(mode: TraceBackFaces) -> Self {
-        BackFaces { mode, unseen: None }
+        BackFaces { mode, unseen: None, grazing_deg: 0.0 }
     }
 }
 
@@ -111,7 +114,12 @@ impl BackFaces {
             "{source}: {} unseen flags for {count} surfels (from another run?)",
             flags.len()
         );
-        Ok(BackFaces { mode, unseen: Some(flags.into()) })
+        Ok(BackFaces { mode, unseen: Some(flags.into()), grazing_deg: 0.0 })
+    }
+
+    /// The same with the grazing tolerance `deg` (a run's `trace_grazing`).
+    pub fn with_grazing(self, deg: f32) -> BackFaces {
+        BackFaces { grazing_deg: deg, ..self }
     }
 }
 
@@ -123,7 +131,15 @@ pub fn trace_settings_with(back_faces: &BackFaces) -> TraceSettings {
         TraceBackFaces::Dark => (true, true),
     };
     let back_occluders = if back_faces.mode == TraceBackFaces::DarkUnseen { back_faces.unseen.clone() } else { None };
-    TraceSettings { linear_radiance: true, two_sided, dark_back_faces, back_occluders, ..TraceSettings::default() }
+    let grazing_sin = back_faces.grazing_deg.to_radians().sin();
+    TraceSettings {
+        linear_radiance: true,
+        two_sided,
+        dark_back_faces,
+        back_occluders,
+        grazing_sin,
+        ..TraceSettings::default()
+    }
 }
 
 /// Everything an inverse run holds.
@@ -253,7 +269,11 @@ impl InverseState {
 
     /// How this run's traced rays treat back faces.
     pub fn back_faces(&self, cfg: &TrainConfig) -> BackFaces {
-        BackFaces { mode: cfg.trace_back_faces, unseen: Some(Arc::from(self.unseen.as_slice())) }
+        BackFaces {
+            mode: cfg.trace_back_faces,
+            unseen: Some(Arc::from(self.unseen.as_slice())),
+            grazing_deg: cfg.trace_grazing,
+        }
     }
 
     pub fn to_checkpoint(&self, cfg: &TrainConfig) -> Checkpoint {
@@ -1544,7 +1564,11 @@ mod tests {
         assert_eq!(dark.0, two.0, "dark back faces block as two-sided ones do");
         assert_eq!(dark.1, 0.0, "dark back faces add no light");
         // dark-unseen: the upper surfel blocks as dark when flagged unseen, else it is culled.
-        let unseen = |flags: [bool; 2]| BackFaces { mode: TraceBackFaces::DarkUnseen, unseen: Some(flags.into()) };
+        let unseen = |flags: [bool; 2]| BackFaces {
+            mode: TraceBackFaces::DarkUnseen,
+            unseen: Some(flags.into()),
+            grazing_deg: 0.0,
+        };
         assert_eq!(cache_of(unseen([false, true])), dark);
         assert_eq!(cache_of(unseen([true, false])), cull);
         assert_eq!(cache_of(TraceBackFaces::DarkUnseen.into()), cull, "without flags it culls");

@@ -82,18 +82,10 @@ fn main() -> anyhow::Result<()> {
     let mut rows = Vec::new();
     for i in 0..pbr.surfels.len() {
         let p = pbr.surfels.means[i].map(|x| x as f64);
-        if scene_readme::nearest(&readme.objects, p) != floor {
-            continue;
+        let Some(foot) = scene_readme::foot_on_upward_face(&readme.objects, floor, p) else { continue };
+        if pbr.surfels.normal(i)[2] >= 0.7 {
+            rows.push((i, Vec3::new(foot[0] as f32, foot[1] as f32, foot[2] as f32)));
         }
-        let o = &readme.objects[floor];
-        let d = o.sdf(p);
-        let e = 1e-4;
-        let up = (o.sdf([p[0], p[1], p[2] + e]) - d) / e;
-        if d.abs() > 0.015 || up < 0.7 || pbr.surfels.normal(i)[2] < 0.7 {
-            continue;
-        }
-        // The foot point on the true floor.
-        rows.push((i, Vec3::new(p[0] as f32, p[1] as f32, (p[2] - d) as f32)));
     }
     let picked: Vec<_> = rows.iter().step_by(stride).copied().collect();
     println!("{} floor surfels facing up, {} probed, {paths} paths per true hit", rows.len(), picked.len());

@@ -83,17 +83,8 @@ fn main() -> anyhow::Result<()> {
     );
     for i in 0..scene.surfels.len() {
         let p = scene.surfels.means[i].map(|x| x as f64);
-        if scene_readme::nearest(&readme.objects, p) != floor {
-            continue;
-        }
-        let o = &readme.objects[floor];
-        let d = o.sdf(p);
-        let e = 1e-4;
-        let up = (o.sdf([p[0], p[1], p[2] + e]) - d) / e;
-        if d.abs() > 0.015 || up < 0.7 {
-            continue;
-        }
-        let foot = [p[0], p[1], p[2] - d + 1e-6];
+        let Some(f) = scene_readme::foot_on_upward_face(&readme.objects, floor, p) else { continue };
+        let foot = [f[0], f[1], f[2] + 1e-6];
         let gap = spheres
             .iter()
             .map(|&k| {

@@ -295,3 +295,16 @@ impl Object {
 pub fn nearest(objects: &[Object], p: [f64; 3]) -> usize {
     (0..objects.len()).min_by(|&a, &b| objects[a].sdf(p).abs().total_cmp(&objects[b].sdf(p).abs())).unwrap_or(0)
 }
+
+/// The foot point on object `k`'s true surface of a point `p` whose nearest object is `k`,
+/// within 15 mm of it, where that surface faces up (its normal's z > 0.7); else None.
+pub fn foot_on_upward_face(objects: &[Object], k: usize, p: [f64; 3]) -> Option<[f64; 3]> {
+    if nearest(objects, p) != k {
+        return None;
+    }
+    let o = &objects[k];
+    let d = o.sdf(p);
+    let e = 1e-4;
+    let up = (o.sdf([p[0], p[1], p[2] + e]) - d) / e;
+    (d.abs() <= 0.015 && up >= 0.7).then_some([p[0], p[1], p[2] - d])
+}

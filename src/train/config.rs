@@ -1013,7 +1013,7 @@ mod tests {
         std::fs::write(run.join("config.toml"), "iters = 3000\n").unwrap();
         let saved = crate::eval::load_run_config(&run).unwrap();
         // A run's file is validated as `train`'s settings are, naming the file and the setting.
-        for bad in ["window = 0\n", "filter_inv_square = nan\n"] {
+        for bad in ["window = 0\n", "filter_inv_square = nan\n", "trace_grazing = 90.0\n", "trace_grazing = nan\n"] {
             std::fs::write(run.join("config.toml"), format!("iters = 3000\n{bad}")).unwrap();
             let err = crate::eval::load_run_config(&run).unwrap_err().to_string();
             let key = bad.split(' ').next().unwrap();

@@ -8,9 +8,10 @@
 //! the gap the opacity (1 − T) explains, per hit object and per height of the true hit's
 //! normal (undersides are what no camera sees).
 //!
-//!     cargo run --release --example probe_incident_truth -- RUN DATA [STRIDE] [PATHS]
+//!     cargo run --release --example probe_incident_truth -- RUN DATA [STRIDE] [PATHS] [objects]
 //!
 //! STRIDE (default 25): every STRIDE-th floor surfel; PATHS (default 64): paths per hit.
+//! `objects`: probe the surfels of the other objects instead (see [`probe_objects`]).
 
 #[path = "common/probe_run.rs"]
 mod probe_run;
@@ -78,6 +79,9 @@ fn main() -> anyhow::Result<()> {
     let pbr = PbrScene::new(surfels, learned, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, back_faces);
     let ns = pbr.cache.samples;
     let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
+    if args.get(5).map(String::as_str) == Some("objects") {
+        return probe_objects(&readme, &scene, &env, &opts, &pbr, floor, stride, paths);
+    }
 
     let mut rows = Vec::new();
     for i in 0..pbr.surfels.len() {
@@ -217,5 +221,207 @@ fn main() -> anyhow::Result<()> {
     }
     let o: f64 = per_surfel.iter().map(|e| e[4]).sum();
     println!("  all: ours / truth {:.3}", o / truth_e.iter().sum::<f64>());
+    Ok(())
+}
+
+/// The objects' surfels (nearest object not the floor, within 15 mm of its true surface, normal
+/// within 45° of the true one): every cached direction in the true normal's hemisphere is
+/// re-cast from the foot point on the true surface. Our indirect irradiance (the cache, weighed
+/// with our normal) against the truth's over the same directions (path-traced radiance where the
+/// true ray hits something, with the true normal), per height of the surfel's true normal and
+/// per object; split into the directions that truly hit something and those that truly see the
+/// sky. Beside it the direct light the same way (the learned light's scale is free: also shown
+/// relative to all surfels'), each object's albedo against the truth and its mean roughness, and
+/// the truly blocked rays per hit object, the floor also by the elevation it is seen at.
+#[allow(clippy::too_many_arguments)]
+fn probe_objects(
+    readme: &scene_readme::SceneReadme,
+    scene: &radiogs::synth::scene::Scene,
+    env: &EnvLight,
+    opts: &RenderOptions,
+    pbr: &PbrScene,
+    floor: usize,
+    stride: usize,
+    paths: u32,
+) -> anyhow::Result<()> {
+    use rayon::prelude::*;
+    let ns = pbr.cache.samples;
+    let mut rows = Vec::new();
+    for i in 0..pbr.surfels.len() {
+        let p = pbr.surfels.means[i].map(|x| x as f64);
+        let k = scene_readme::nearest(&readme.objects, p);
+        let o = &readme.objects[k];
+        let d = o.sdf(p);
+        if k == floor || d.abs() > 0.015 {
+            continue;
+        }
+        let e = 1e-5;
+        let g = [0, 1, 2].map(|a| {
+            let mut q = p;
+            q[a] += e;
+            (o.sdf(q) - d) / e
+        });
+        let n_true = Vec3::new(g[0] as f32, g[1] as f32, g[2] as f32).normalize();
+        if n_true.dot(Vec3::from(pbr.surfels.normal(i))) < 0.7 {
+            continue;
+        }
+        let foot = Vec3::new((p[0] - d * g[0]) as f32, (p[1] - d * g[1]) as f32, (p[2] - d * g[2]) as f32);
+        rows.push((i, foot, n_true));
+    }
+    let picked: Vec<_> = rows.iter().step_by(stride).copied().collect();
+    println!("{} object surfels, {} probed, {paths} paths per true hit", rows.len(), picked.len());
+    // Per surfel: the band of its true normal's z, its object, the sums `e` below, and per truly
+    // blocked ray (hit object, ours, truth, our opacity 1 − T).
+    let names: Vec<String> = readme.objects.iter().map(|o| o.object.clone()).collect();
+    type Row = (usize, usize, [f64; 7], Vec<(usize, f64, f64, f64)>);
+    let per_surfel: Vec<Row> = picked
+        .par_iter()
+        .map(|&(i, foot, n_true)| {
+            let n_ours = Vec3::from(pbr.surfels.normal(i));
+            // [ours indirect where truly blocked, ours indirect where truly open, truth indirect,
+            //  ours direct (cached visibility × learned light), truth direct (the same directions
+            //  where the true scene is open, the true light), and those two direct sums over the
+            //  directions below the horizon only]
+            let mut e = [0.0f64; 7];
+            let mut hits = Vec::new();
+            for q in 0..ns {
+                let k = i * ns + q;
+                let d = Vec3::from(pbr.cache.dirs[k]);
+                let w =
+                    if pbr.cache.sample_weights.is_empty() { pbr.cache.weight } else { pbr.cache.sample_weights[k] };
+                let lum = |v: [f32; 3]| (v[0] + v[1] + v[2]) as f64 / 3.0;
+                let ours = w as f64 * n_ours.dot(d).max(0.0) as f64 * lum(pbr.cache.indirect[k]);
+                let cos_true = n_true.dot(d);
+                let hit = if cos_true > 0.0 {
+                    scene.intersect(&SynthRay { o: foot + 1e-4 * n_true, d }, f32::INFINITY)
+                } else {
+                    None
+                };
+                let ours_direct = w as f64
+                    * n_ours.dot(d).max(0.0) as f64
+                    * lum(pbr.env.lookup(d.to_array()))
+                    * pbr.cache.visibility[k] as f64;
+                e[3] += ours_direct;
+                if d.z < 0.0 {
+                    e[5] += ours_direct;
+                }
+                let Some(hit) = hit else {
+                    e[1] += ours;
+                    if cos_true > 0.0 {
+                        let truth_direct = w as f64 * cos_true as f64 * (env.eval(d).element_sum() / 3.0) as f64;
+                        e[4] += truth_direct;
+                        if d.z < 0.0 {
+                            e[6] += truth_direct;
+                        }
+                    }
+                    continue;
+                };
+                let mut rng = pixel_rng(13, i as u64, q as u64);
+                let mut l = Vec3::ZERO;
+                for _ in 0..paths {
+                    let (dl, il) = trace_path(scene, env, hit, d, opts, &mut rng);
+                    l += dl + il;
+                }
+                let truth = w as f64 * cos_true as f64 * (l.element_sum() / 3.0 / paths as f32) as f64;
+                e[0] += ours;
+                e[2] += truth;
+                let object = scene_readme::nearest(&readme.objects, hit.p.to_array().map(|x| x as f64));
+                let opacity = 1.0 - pbr.cache.visibility[k] as f64;
+                hits.push((object, ours, truth, opacity));
+                if object == floor {
+                    // The floor seen at this elevation (its SH read at −d): grazing is unseen.
+                    let elevation = (-d.z).clamp(-1.0, 1.0).asin().to_degrees();
+                    let bin = [15.0, 30.0, 60.0].iter().take_while(|&&e| elevation >= e).count();
+                    hits.push((readme.objects.len() + bin, ours, truth, opacity));
+                }
+            }
+            let band = ((n_true.z + 1.0) * 2.0).floor().clamp(0.0, 3.0) as usize;
+            let own = scene_readme::nearest(&readme.objects, foot.to_array().map(|x| x as f64));
+            (band, own, e, hits)
+        })
+        .collect();
+    println!("indirect irradiance over the cached directions, by the surfel's true normal z, then by its object:");
+    let groups = 5 + names.len();
+    let all_direct = {
+        let s = per_surfel.iter().fold([0.0; 2], |a, r| [a[0] + r.2[3], a[1] + r.2[4]]);
+        s[0] / s[1]
+    };
+    for b in 0..groups {
+        let rows: Vec<_> = per_surfel
+            .iter()
+            .filter(|r| {
+                if b < 4 {
+                    r.0 == b
+                } else if b == 4 {
+                    true
+                } else {
+                    r.1 == b - 5
+                }
+            })
+            .collect();
+        let s = rows.iter().fold([0.0; 7], |a, r| [0, 1, 2, 3, 4, 5, 6].map(|c| a[c] + r.2[c]));
+        let label = match b {
+            0..4 => format!("[{:.1}, {:.1})", b as f32 * 0.5 - 1.0, b as f32 * 0.5 - 0.5),
+            4 => "all".to_string(),
+            _ => names[b - 5].clone(),
+        };
+        if s[2] > 0.0 {
+            println!(
+                "  {label:16} {:5} surfels | ours / truth {:.3} (truly blocked rays {:.3}, truly open rays add {:.3}) | mean truth E {:.4} | direct ours / truth {:.3} (÷ all's: {:.3}; from below the horizon: ours {:.3}, truth {:.3} of the truth's direct)",
+                rows.len(),
+                (s[0] + s[1]) / s[2],
+                s[0] / s[2],
+                s[1] / s[2],
+                s[2] / rows.len() as f64,
+                s[3] / s[4],
+                s[3] / s[4] / all_direct,
+                s[5] / s[4] / all_direct,
+                s[6] / s[4]
+            );
+        }
+    }
+    // The albedo that multiplies this irradiance in the indirect pass: ours against the true base
+    // colour, opacity-weighted over every row of each object (checkers: the cell's colour).
+    println!("albedo ours / truth per object (opacity-weighted, channel sums), and our mean roughness:");
+    for (k, o) in readme.objects.iter().enumerate() {
+        let (mut ours, mut truth, mut rough, mut weight) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        for &(i, foot, _) in rows.iter() {
+            if scene_readme::nearest(&readme.objects, foot.to_array().map(|x| x as f64)) != k {
+                continue;
+            }
+            let w = pbr.surfels.opacity(i) as f64;
+            rough += w * pbr.surfels.roughness(i) as f64;
+            weight += w;
+            ours += w * pbr.surfels.albedo(i).iter().map(|&a| a as f64).sum::<f64>();
+            let m = &readme.materials[&o.material];
+            truth += w * o.base_colour(m, foot.to_array().map(|x| x as f64)).iter().sum::<f64>();
+        }
+        if truth > 0.0 {
+            println!("  {:20} {:.3} | roughness {:.3}", o.object, ours / truth, rough / weight);
+        }
+    }
+    println!("truly blocked rays by the object they truly hit (the floor also by the elevation it is seen at):");
+    let labels: Vec<String> = names
+        .iter()
+        .cloned()
+        .chain(
+            ["floor seen at 0–15°", "floor seen at 15–30°", "floor seen at 30–60°", "floor seen at 60–90°"]
+                .map(String::from),
+        )
+        .collect();
+    for (k, name) in labels.iter().enumerate() {
+        let (mut o, mut t, mut op, mut c) = (0.0, 0.0, 0.0, 0usize);
+        for &(obj, ours, truth, opacity) in per_surfel.iter().flat_map(|r| &r.3) {
+            if obj == k {
+                o += ours;
+                t += truth;
+                op += opacity;
+                c += 1;
+            }
+        }
+        if c > 0 {
+            println!("  {name:20} {c:7} rays | ours / truth {:.3} | mean 1 − T {:.3}", o / t, op / c as f64);
+        }
+    }
     Ok(())
 }

@@ -64,6 +64,11 @@ fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let stride: usize = args.get(3).map(|s| s.parse()).transpose().context("STRIDE")?.unwrap_or(25).max(1);
     let paths: u32 = args.get(4).map(|s| s.parse()).transpose().context("PATHS")?.unwrap_or(64).max(1);
+    let objects = match args.get(5).map(String::as_str) {
+        None => false,
+        Some("objects") => true,
+        Some(other) => anyhow::bail!("mode {other:?}: the only mode is `objects` (leave it out for the floor)"),
+    };
     let readme = scene_readme::load(&data)?;
     let info: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(data.join("README.json"))?)?;
     let scene_name = info["args"]["scene"].as_str().context("README.json: args.scene")?;
@@ -79,7 +84,7 @@ fn main() -> anyhow::Result<()> {
     let pbr = PbrScene::new(surfels, learned, cfg.pbr_samples, start, cfg.window, factor, cfg.seed, back_faces);
     let ns = pbr.cache.samples;
     let floor = readme.objects.iter().position(|o| o.object.contains("floor")).context("no floor object")?;
-    if args.get(5).map(String::as_str) == Some("objects") {
+    if objects {
         return probe_objects(&readme, &scene, &env, &opts, &pbr, floor, stride, paths);
     }
 

@@ -160,5 +160,6 @@ pub fn render_view(
     id: u64,
     bar: &indicatif::ProgressBar,
 ) -> Vec<PixelOut> {
-    render(scene, env, cam, opts, seed, id, &|n| bar.inc(n))
+    // The bar counts camera samples, so that views of different spp weigh what they cost.
+    render(scene, env, cam, opts, seed, id, &|n| bar.inc(n * opts.spp.max(1) as u64))
 }

@@ -41,10 +41,18 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 16)]
     pub test_views: usize,
     /// Samples per pixel (camera samples; alpha is their coverage). 256 (DESIGN §4): the
-    /// test views' indirect pass is then quiet enough to measure issue 7's 28 dB (its noise
-    /// allows ≈ 31–32 dB at 200²; the demo renders 128² at 32 spp: ≈ 25 dB).
+    /// test views' indirect pass is then quiet enough to measure issue 7's 28 dB, though its
+    /// noise still costs ≈ 1 dB there (session 77: see `--test-spp`); the demo renders 128² at
+    /// 32 spp.
     #[arg(long, default_value_t = 256)]
     pub spp: u32,
+    /// Samples per pixel for the test views (their ground-truth passes and relit images)
+    /// instead of `--spp`: a quieter reference to measure against (the indirect pass's noise
+    /// falls as 1/spp in squared error) while the training images keep `--spp`'s noise. The
+    /// training views are the same bytes whatever this is.
+    #[arg(long)]
+    #[serde(default)]
+    pub test_spp: Option<u32>,
     /// Maximum surface vertices per path (≥ 4 recommended).
     #[arg(long, default_value_t = 8)]
     pub max_bounces: u32,
@@ -138,6 +146,7 @@ impl SynthArgs {
             train_views: 48,
             test_views: 8,
             spp: 32,
+            test_spp: None,
             max_bounces: 8,
             seed: 0,
             train_env: "sky".into(),
@@ -209,7 +218,11 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         );
     }
     anyhow::ensure!((8..=4096).contains(&args.res), "--res {} is out of range [8, 4096]", args.res);
-    anyhow::ensure!(args.spp >= 1 && args.max_bounces >= 1, "--spp and --max-bounces must be ≥ 1");
+    anyhow::ensure!(
+        args.spp >= 1 && args.test_spp.is_none_or(|n| n >= 1) && args.max_bounces >= 1,
+        "--spp, --test-spp and --max-bounces must be ≥ 1"
+    );
+    let test_spp = args.test_spp.unwrap_or(args.spp);
     anyhow::ensure!(
         (16..=16384).contains(&args.env_width),
         "--env-width {} is out of range [16, 16384]",
@@ -283,13 +296,16 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     }
 
     let opts = RenderOptions { spp: args.spp, max_bounces: args.max_bounces, rr_start: 3 };
+    let test_opts = RenderOptions { spp: test_spp, ..opts };
     let train_cams = dataset::cameras(&scene.rig, args.train_views, args.res, false, args.seed);
     let test_cams = match &args.test_cameras {
         Some(path) => load_test_cameras(path, args.res)?,
         None => dataset::cameras(&scene.rig, args.test_views, args.res, true, args.seed),
     };
     let px = (args.res as u64).pow(2);
-    let total = px * (train_cams.len() + test_cams.len() * (1 + relight.len())) as u64;
+    let total = px
+        * (train_cams.len() as u64 * opts.spp as u64
+            + (test_cams.len() * (1 + relight.len())) as u64 * test_spp as u64);
     let bar = indicatif::ProgressBar::new(total);
     bar.set_style(
         indicatif::ProgressStyle::with_template("synth {msg} [{elapsed_precise}] {wide_bar} {percent}% ETA {eta}")
@@ -317,10 +333,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let mut stats = Vec::new();
     let mut relight_s = 0.0;
     for (i, cam) in test_cams.iter().enumerate() {
-        let img = dataset::render_view(&scene, &train_env, cam, &opts, args.seed, (2 << 32) | i as u64, &bar);
+        let img = dataset::render_view(&scene, &train_env, cam, &test_opts, args.seed, (2 << 32) | i as u64, &bar);
         let dir = out.join(&cam.name);
         dataset::write_test_passes(&dir, cam, &img)?;
-        dataset::write_json(&dir.join("metadata.json"), &dataset::metadata(cam, &train_env.name, args.spp))?;
+        dataset::write_json(&dir.join("metadata.json"), &dataset::metadata(cam, &train_env.name, test_spp))?;
         stats.push(dataset::pass_stats(&img));
         frames_test.push(
             serde_json::json!({"file_path": format!("./{}/rgba", cam.name), "transform_matrix": cam.to_blender_rows()}),
@@ -328,7 +344,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         let tr = Instant::now();
         for (k, env) in relight.iter().enumerate() {
             let id = ((3 + k as u64) << 32) | i as u64;
-            let img = dataset::render_view(&scene, env, cam, &opts, args.seed, id, &bar);
+            let img = dataset::render_view(&scene, env, cam, &test_opts, args.seed, id, &bar);
             crate::io::image::write_image(&dir.join(format!("rgba_{}.png", env.name)), &dataset::rgba_png(cam, &img))?;
         }
         relight_s += tr.elapsed().as_secs_f64();
@@ -359,6 +375,7 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         "args": args,
         "sampling": {
             "spp": args.spp,
+            "test_spp": test_spp,
             "pixel_filter": "box, stratified sub-pixel jitter (ceil(sqrt(spp))² grid)",
             "max_bounces": args.max_bounces,
             "russian_roulette_from_bounce": opts.rr_start,
@@ -438,6 +455,7 @@ mod tests {
         let out = base.join("out");
         let cases = [
             (SynthArgs { train_views: 0, ..tiny(out.clone()) }, "--train-views"),
+            (SynthArgs { test_spp: Some(0), ..tiny(out.clone()) }, "--test-spp"),
             (SynthArgs { relight_envs: Some(vec!["sky".into(), "nope".into()]), ..tiny(out.clone()) }, "'nope'"),
             (SynthArgs { train_env: "nope".into(), ..tiny(out.clone()) }, "'nope'"),
             (SynthArgs { env_width: 100_000, ..tiny(out.clone()) }, "--env-width"),
@@ -543,6 +561,30 @@ mod tests {
         }
         assert_eq!(meta["imw"], 16);
         assert_eq!(meta["envmap"], "sky");
+    }
+
+    /// `--test-spp` renders the test views (passes and relit images) with its own sample
+    /// count and leaves the training views' bytes as `--spp` makes them.
+    #[test]
+    fn test_spp_changes_the_test_views_only() {
+        let base = TempDir::new("synth-test-spp");
+        let (plain, quiet) = (base.join("plain"), base.join("quiet"));
+        run(&tiny(plain.clone())).unwrap();
+        run(&SynthArgs { test_spp: Some(16), ..tiny(quiet.clone()) }).unwrap();
+        let read = |dir: &std::path::Path, f: &str| std::fs::read(dir.join(f)).unwrap();
+        for f in ["train_000/rgba.png", "train_001/rgba.png", "transforms_train.json", "transforms_test.json"] {
+            assert_eq!(read(&plain, f), read(&quiet, f), "{f}");
+        }
+        for f in ["test_000/rgba.png", "test_000/indirect.exr", "test_000/rgba_studio.png"] {
+            assert_ne!(read(&plain, f), read(&quiet, f), "{f}");
+        }
+        let json =
+            |dir: &std::path::Path, f: &str| -> serde_json::Value { serde_json::from_slice(&read(dir, f)).unwrap() };
+        assert_eq!(json(&quiet, "README.json")["sampling"]["spp"], 2);
+        assert_eq!(json(&quiet, "README.json")["sampling"]["test_spp"], 16);
+        assert_eq!(json(&plain, "README.json")["sampling"]["test_spp"], 2);
+        assert_eq!(json(&quiet, "test_000/metadata.json")["spp"], 16);
+        assert_eq!(json(&quiet, "train_000/metadata.json")["spp"], 2);
     }
 
     /// `--elevation` and `--azimuth` set the band every camera lies in; bad ranges are refused

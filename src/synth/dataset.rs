@@ -161,5 +161,5 @@ pub fn render_view(
     bar: &indicatif::ProgressBar,
 ) -> Vec<PixelOut> {
     // The bar counts camera samples, so that views of different spp weigh what they cost.
-    render(scene, env, cam, opts, seed, id, &|n| bar.inc(n * opts.spp.max(1) as u64))
+    render(scene, env, cam, opts, seed, id, &|n| bar.inc(n.saturating_mul(opts.spp.max(1) as u64)))
 }

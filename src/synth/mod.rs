@@ -303,9 +303,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         None => dataset::cameras(&scene.rig, args.test_views, args.res, true, args.seed),
     };
     let px = (args.res as u64).pow(2);
-    let total = px
-        * (train_cams.len() as u64 * opts.spp as u64
-            + (test_cams.len() * (1 + relight.len())) as u64 * test_spp as u64);
+    // Saturating: absurd sizes must not overflow a progress bar's total.
+    let samples = |views: usize, spp: u32| px.saturating_mul(views as u64).saturating_mul(spp as u64);
+    let total =
+        samples(train_cams.len(), opts.spp).saturating_add(samples(test_cams.len() * (1 + relight.len()), test_spp));
     let bar = indicatif::ProgressBar::new(total);
     bar.set_style(
         indicatif::ProgressStyle::with_template("synth {msg} [{elapsed_precise}] {wide_bar} {percent}% ETA {eta}")

@@ -236,8 +236,13 @@ fn main() -> anyhow::Result<()> {
 /// true ray hits something, with the true normal), per height of the surfel's true normal and
 /// per object; split into the directions that truly hit something and those that truly see the
 /// sky. Beside it the direct light the same way (the learned light's scale is free: also shown
-/// relative to all surfels'), each object's albedo against the truth and its mean roughness, and
-/// the truly blocked rays per hit object, the floor also by the elevation it is seen at.
+/// relative to all surfels'), and again under the true light with our normals and visibility and
+/// with the true normal and our visibility (which of light, normals and visibility makes the
+/// direct light's error); per face (the true normal's dominant axis) of each object the same
+/// direct ratios, the albedo against the truth and the normals' lean (per surfel, not per pixel:
+/// a crease's many small surfels weigh as much as a wall's few large ones); each object's albedo
+/// against the truth and its mean roughness, and the truly blocked rays per hit object, the floor
+/// also by the elevation it is seen at.
 #[allow(clippy::too_many_arguments)]
 fn probe_objects(
     readme: &scene_readme::SceneReadme,
@@ -278,7 +283,7 @@ fn probe_objects(
     // Per surfel: the band of its true normal's z, its object, the sums `e` below, and per truly
     // blocked ray (hit object, ours, truth, our opacity 1 − T).
     let names: Vec<String> = readme.objects.iter().map(|o| o.object.clone()).collect();
-    type Row = (usize, usize, [f64; 7], Vec<(usize, f64, f64, f64)>);
+    type Row = (usize, usize, [f64; 10], Vec<(usize, f64, f64, f64)>);
     let per_surfel: Vec<Row> = picked
         .par_iter()
         .map(|&(i, foot, n_true)| {
@@ -287,7 +292,8 @@ fn probe_objects(
             //  ours direct (cached visibility × learned light), truth direct (the same directions
             //  where the true scene is open, the true light), and those two direct sums over the
             //  directions below the horizon only]
-            let mut e = [0.0f64; 7];
+            // [7], [8]: our direct sums again with the true light in place of the learned one.
+            let mut e = [0.0f64; 10];
             let mut hits = Vec::new();
             for q in 0..ns {
                 let k = i * ns + q;
@@ -306,9 +312,20 @@ fn probe_objects(
                     * n_ours.dot(d).max(0.0) as f64
                     * lum(pbr.env.lookup(d.to_array()))
                     * pbr.cache.visibility[k] as f64;
+                let ours_direct_true_light = w as f64
+                    * n_ours.dot(d).max(0.0) as f64
+                    * (env.eval(d).element_sum() / 3.0) as f64
+                    * pbr.cache.visibility[k] as f64;
                 e[3] += ours_direct;
+                e[7] += ours_direct_true_light;
+                // [9]: the true normal's cosine with our visibility, under the true light.
+                e[9] += w as f64
+                    * cos_true.max(0.0) as f64
+                    * (env.eval(d).element_sum() / 3.0) as f64
+                    * pbr.cache.visibility[k] as f64;
                 if d.z < 0.0 {
                     e[5] += ours_direct;
+                    e[8] += ours_direct_true_light;
                 }
                 let Some(hit) = hit else {
                     e[1] += ours;
@@ -364,7 +381,7 @@ fn probe_objects(
                 }
             })
             .collect();
-        let s = rows.iter().fold([0.0; 7], |a, r| [0, 1, 2, 3, 4, 5, 6].map(|c| a[c] + r.2[c]));
+        let s = rows.iter().fold([0.0; 10], |a, r| [0, 1, 2, 3, 4, 5, 6, 7, 8, 9].map(|c| a[c] + r.2[c]));
         let label = match b {
             0..4 => format!("[{:.1}, {:.1})", b as f32 * 0.5 - 1.0, b as f32 * 0.5 - 0.5),
             4 => "all".to_string(),
@@ -372,7 +389,7 @@ fn probe_objects(
         };
         if s[2] > 0.0 {
             println!(
-                "  {label:16} {:5} surfels | ours / truth {:.3} (truly blocked rays {:.3}, truly open rays add {:.3}) | mean truth E {:.4} | direct ours / truth {:.3} (÷ all's: {:.3}; from below the horizon: ours {:.3}, truth {:.3} of the truth's direct)",
+                "  {label:16} {:5} surfels | ours / truth {:.3} (truly blocked rays {:.3}, truly open rays add {:.3}) | mean truth E {:.4} | direct ours / truth {:.3} (÷ all's: {:.3}; from below the horizon: ours {:.3}, truth {:.3} of the truth's direct) | our normals and visibility under the true light: direct / truth {:.3} (below the horizon {:.3})",
                 rows.len(),
                 (s[0] + s[1]) / s[2],
                 s[0] / s[2],
@@ -381,8 +398,70 @@ fn probe_objects(
                 s[3] / s[4],
                 s[3] / s[4] / all_direct,
                 s[5] / s[4] / all_direct,
-                s[6] / s[4]
+                s[6] / s[4],
+                s[7] / s[4],
+                s[8] / s[4]
             );
+        }
+    }
+    // Per face: an object's surfels split by their true normal's dominant axis, since a wall's
+    // two faces see opposite halves of the light. Albedo over every row of the face.
+    let face_of = |n: Vec3| {
+        let a = n.abs();
+        let axis = if a.x >= a.y && a.x >= a.z {
+            0
+        } else if a.y >= a.z {
+            1
+        } else {
+            2
+        };
+        2 * axis + usize::from(n[axis] < 0.0)
+    };
+    let face_names = ["+x", "-x", "+y", "-y", "+z", "-z"];
+    println!("per face (true normal's dominant axis): direct ours / truth, under the true light, albedo ours / truth:");
+    for (k, o) in readme.objects.iter().enumerate() {
+        for (f, face_name) in face_names.iter().enumerate() {
+            let mut s = [0.0f64; 10];
+            let mut n = 0;
+            for (r, p) in per_surfel.iter().zip(&picked) {
+                if r.1 == k && face_of(p.2) == f {
+                    n += 1;
+                    for (sum, v) in s.iter_mut().zip(&r.2) {
+                        *sum += v;
+                    }
+                }
+            }
+            let (mut ours, mut truth) = (0.0f64, 0.0f64);
+            let (mut lean, mut angle, mut weight) = (Vec3::ZERO, 0.0f64, 0.0f64);
+            for &(i, foot, n_true) in rows.iter() {
+                let p = foot.to_array().map(|x| x as f64);
+                if face_of(n_true) != f || scene_readme::nearest(&readme.objects, p) != k {
+                    continue;
+                }
+                let w = pbr.surfels.opacity(i) as f64;
+                let n_ours = Vec3::from(pbr.surfels.normal(i));
+                lean += w as f32 * (n_ours - n_true);
+                angle += w * n_ours.dot(n_true).clamp(-1.0, 1.0).acos().to_degrees() as f64;
+                weight += w;
+                ours += w * pbr.surfels.albedo(i).iter().map(|&a| a as f64).sum::<f64>();
+                truth += w * o.base_colour(&readme.materials[&o.material], p).iter().sum::<f64>();
+            }
+            if n >= 3 && s[4] > 0.0 && truth > 0.0 {
+                println!(
+                    "  {:20} {} {:4} surfels | direct ours / truth {:.3} | true light {:.3} (with the true normal {:.3}) | albedo {:.3} | normal off {:.1}°, mean lean {:+.3} {:+.3} {:+.3}",
+                    o.object,
+                    face_name,
+                    n,
+                    s[3] / s[4],
+                    s[7] / s[4],
+                    s[9] / s[4],
+                    ours / truth,
+                    angle / weight,
+                    lean.x / weight as f32,
+                    lean.y / weight as f32,
+                    lean.z / weight as f32
+                );
+            }
         }
     }
     // The albedo that multiplies this irradiance in the indirect pass: ours against the true base

@@ -238,7 +238,7 @@ fn main() -> anyhow::Result<()> {
 /// sky. Beside it the direct light the same way (the learned light's scale is free: also shown
 /// relative to all surfels'), and again under the true light with our normals and visibility and
 /// with the true normal and our visibility (which of light, normals and visibility makes the
-/// direct light's error); per face (the true normal's dominant axis) of each object the same
+/// direct light's error; every sum runs over the cached directions, i.e. our normal's hemisphere); per face (the true normal's dominant axis) of each object the same
 /// direct ratios, the albedo against the truth and the normals' lean (per surfel, not per pixel:
 /// a crease's many small surfels weigh as much as a wall's few large ones); each object's albedo
 /// against the truth and its mean roughness, and the truly blocked rays per hit object, the floor

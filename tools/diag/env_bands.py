@@ -83,7 +83,13 @@ def bands(truth, ours):
 
 def main():
     if len(sys.argv) == 5 and sys.argv[1] == '--blur':
-        blur(read_map(sys.argv[3]), float(sys.argv[2]), sys.argv[4])
+        try:
+            sigma = float(sys.argv[2])
+        except ValueError:
+            sys.exit(f'--blur {sys.argv[2]!r}: not a number (degrees)')
+        if not 0 < sigma < 90:
+            sys.exit(f'--blur {sigma}: must be in (0, 90) degrees')
+        blur(read_map(sys.argv[3]), sigma, sys.argv[4])
     elif len(sys.argv) == 3:
         bands(read_map(sys.argv[1]), read_map(sys.argv[2]))
     else:

@@ -4,7 +4,9 @@ session 60: the per-channel median-scaled `eval/test_*_albedo.png` against the G
 over the GT mask, mean over views), then the same with our albedo replaced, per GT
 material, by its median over all the views (an oracle segmentation: GT colours quantised to
 0.05, which parts spheres' white glossy sphere, 0.85, from its checker's light squares, 0.8;
-session 53–60 used 0.1), then per material the mean ours / GT and the coefficient of variation.
+session 53–60 used 0.1), then with each material's level set to the truth's median and its
+variation kept (session 79), then per material the mean ours / GT and the coefficient of
+variation.
 usage: albedo_segments.py DATA RUN/eval [VIEWS]
 
 Throw-away diagnostics (numpy, PIL) for the shared scenes (flat-coloured materials); not part
@@ -30,13 +32,17 @@ O = np.concatenate([p[1] for p in pairs])
 keys, label, count = np.unique(np.round(G * 20) / 20, axis=0, return_inverse=True, return_counts=True)
 label = label.ravel()
 median = np.array([np.median(O[label == t], 0) for t in range(len(keys))])
-ours, seg, off = [], [], 0
+# Each material's level set to the truth's, its variation kept: which of level and variation to fix.
+gain = np.array([np.median(G[label == t], 0) for t in range(len(keys))]) / np.maximum(median, 1e-4)
+ours, seg, lev, off = [], [], [], 0
 for g, o in pairs:
     lab = label[off:off + len(g)]
     off += len(g)
     ours.append(psnr(o, g))
     seg.append(psnr(median[lab], g))
-print(f'{ev}: masked albedo PSNR {np.mean(ours):.2f}, with per-material medians {np.mean(seg):.2f}')
+    lev.append(psnr(o * gain[lab], g))
+print(f'{ev}: masked albedo PSNR {np.mean(ours):.2f}, with per-material medians {np.mean(seg):.2f}, '
+      f'with per-material levels set to the truth\'s {np.mean(lev):.2f}')
 for t in np.argsort(-count)[:10]:
     s = label == t
     ratio = O[s].mean(0) / np.maximum(G[s].mean(0), 1e-4)

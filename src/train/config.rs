@@ -365,11 +365,10 @@ pub struct TrainConfig {
     #[serde(default = "clip_saturated_off")]
     pub clip_saturated: bool,
     /// White-light prior [0; published 0.01]: the L1 of each env texel's channels from their
-    /// mean. It greys the light where few surfels look (the ground far below the horizon, which
-    /// only the objects' sides and undersides see), and the coloured walls' albedo takes the
-    /// difference: off, albedo +0.07–0.36 dB and relighting +0.00–0.30 dB on all four measured
-    /// scenes, indirect light within ±0.07 dB (BENCHMARKS.md, session 79). Old runs keep the
-    /// value their config file holds.
+    /// mean. It keeps the light grey where few surfels look (the ground far below the horizon,
+    /// which only the objects' sides and undersides see). Off: albedo +0.07–0.36 dB and
+    /// relighting +0.00–0.30 dB on all four measured scenes, indirect light within ±0.07 dB
+    /// (BENCHMARKS.md, session 79). Old runs keep the value their config file holds.
     #[arg(long, default_value_t = 0.0)]
     pub lambda_white_light: f32,
     /// Env total variation [0.002; published 0.02]. Squared differences of linear radiance

@@ -13,13 +13,13 @@ our direct radiance (`test_NNN_pbr.png` − `test_NNN_indirect.png`) and the tru
 radiance and the truth's. Printed: the albedo ratio a, and the incident light that the direct and
 indirect radiance ratios imply, D / a and I / a (ours / truth; the specular part of the radiance
 is counted as diffuse, so glossy materials read less clean), and the truth's direct share (faces
-no test view sees lit indirectly, e.g. the walls' outer faces, print huge I / a: ignore it). The
+whose true indirect light is near zero, e.g. the walls' outer faces, print huge I / a: ignore it). The
 albedo is median-scaled by eval, so only the ratios *between* materials mean anything: a
 material whose D / a sits below the white faces' is shaded with too little direct light,
 relative to them.
 
-Session 80 (default runs): on both cornells the green wall's inner face gets 0.6–0.75 × the
-direct light, relative to the white faces (its albedo 1.2–1.5 × the truth's).
+Session 80 (default runs): on both cornells the green wall's inner face has D / a 0.50–0.76
+against the white faces' 1.02–1.19 (its albedo 1.2–1.5 × the truth's).
 
 Throw-away diagnostics (numpy, PIL, OpenEXR); not part of the build or tests."""
 import os, sys

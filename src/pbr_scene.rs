@@ -124,7 +124,7 @@ impl PbrScene {
         }
         let cfg = crate::eval::load_run_config(run)?;
         let surfels = crate::eval::load_run_surfels(run)?;
-        let back_faces = BackFaces::of_run(run, cfg.trace_back_faces, surfels.len())?.with_grazing(cfg.trace_grazing);
+        let back_faces = BackFaces::of_run(run, cfg.trace_back_faces, surfels.len())?.of_config(&cfg);
         let env = EnvMap::load(&env_path)?;
         let extent = scene_extent(run);
         let start = cfg.ray_start(extent);

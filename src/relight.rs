@@ -358,7 +358,7 @@ pub fn run(args: &RelightArgs) -> anyhow::Result<()> {
     }
     let cfg = crate::eval::load_run_config(run)?;
     let mut surfels = crate::eval::load_run_surfels(run)?;
-    let back_faces = BackFaces::of_run(run, cfg.trace_back_faces, surfels.len())?.with_grazing(cfg.trace_grazing);
+    let back_faces = BackFaces::of_run(run, cfg.trace_back_faces, surfels.len())?.of_config(&cfg);
     let env = prepare_env(&args.envmap, args.rotate, cfg.env_height)?;
     let extent = crate::pbr_scene::scene_extent(run);
     let start = cfg.ray_start(extent);

@@ -29,8 +29,8 @@ pub fn from_args(name: &str) -> anyhow::Result<ProbeRun> {
     }
     let extent = radiogs::pbr_scene::scene_extent(&run);
     let surfels = radiogs::eval::load_run_surfels(&run)?;
-    let back_faces = radiogs::train::inverse::BackFaces::of_run(&run, cfg.trace_back_faces, surfels.len())?
-        .with_grazing(cfg.trace_grazing);
+    let back_faces =
+        radiogs::train::inverse::BackFaces::of_run(&run, cfg.trace_back_faces, surfels.len())?.of_config(&cfg);
     Ok(ProbeRun { run, data, cfg, extent, surfels, back_faces })
 }
 

@@ -21,7 +21,7 @@ use super::pbr::{CachedFootprints, PbrInputs};
 use super::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
 use crate::envmap::{EnvMap, PackedFootprint};
 use crate::surfels::Surfels;
-use crate::trace::{Features, HitRecord, Ray, RayOutput, Tracer, trace, trace_recorded};
+use crate::trace::{Features, HitRecord, Ray, RayOutput, Tracer, trace, trace_recorded, visibility_ramp};
 use rand::RngExt;
 use rayon::prelude::*;
 
@@ -347,11 +347,12 @@ impl IncidentCache {
             );
             trace_recorded(tracer, surfels, &rays, &mut out, &mut record);
             for (q, o) in out.iter().enumerate() {
-                self.visibility[first * s + q] = o.transmittance;
+                let (v, g, _, _) = visibility_ramp(o.transmittance, tracer.settings.opaque_below);
+                self.visibility[first * s + q] = v;
                 let (a, b) = record.spans[q];
                 for h in &record.hits[a as usize..b as usize] {
                     hits.surfel.push(h.hit.index);
-                    hits.weight.push(h.trans * h.hit.alpha);
+                    hits.weight.push(h.trans * h.hit.alpha * g);
                 }
                 hits.start.push(hits.surfel.len());
             }
@@ -413,8 +414,9 @@ impl IncidentCache {
                     // Fibonacci rows (no importance now) weigh `weight` each.
                     self.sample_weights[k] = if weights.is_empty() { self.weight } else { weights[j * s + q] };
                 }
-                self.visibility[k] = o.transmittance;
-                self.indirect[k] = if radiance.is_some() {
+                let (v, g, _, _) = visibility_ramp(o.transmittance, tracer.settings.opaque_below);
+                self.visibility[k] = v;
+                let indirect = if radiance.is_some() {
                     let c = &composited[3 * (j * s + q)..][..3];
                     [c[0], c[1], c[2]]
                 } else if tracer.settings.linear_radiance {
@@ -422,6 +424,7 @@ impl IncidentCache {
                 } else {
                     o.radiance.map(decode)
                 };
+                self.indirect[k] = indirect.map(|x| x * g);
             }
         }
     }

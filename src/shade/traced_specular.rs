@@ -154,8 +154,11 @@ impl SpecularSamples {
         let linear = spec.tracer.settings.linear_radiance;
         for (&q, o) in self.live.iter().zip(&self.out_buf) {
             let q = q as usize;
-            self.visibility[q] = o.transmittance;
-            self.indirect[q] = if linear { o.radiance } else { o.radiance.map(crate::shade::incident::decode) };
+            // The shading's visibility ramp, as the incident cache reads its rays.
+            let (v, g, _, _) = crate::trace::visibility_ramp(o.transmittance, spec.tracer.settings.opaque_below);
+            self.visibility[q] = v;
+            let radiance = if linear { o.radiance } else { o.radiance.map(crate::shade::incident::decode) };
+            self.indirect[q] = radiance.map(|x| x * g);
         }
     }
 
@@ -292,6 +295,23 @@ mod tests {
         let mut b = SpecularSamples::default();
         b.trace(&spec, &[0], &[0.1, 0.5], &[n, [0.0, 0.0, -1.0]], &[wo, wo]);
         assert_eq!((a.dirs.clone(), a.weights.clone()), (b.dirs, b.weights));
+
+        // A translucent lid (α 0.8): with the visibility ramp at 0.5 its rays count as blocked and
+        // their radiance as the whole ray's, each sample the unramped one mapped by the ramp.
+        s.opacity_logits[1] = (0.8f32 / 0.2).ln();
+        let traced_with = |t0: f32| {
+            let settings = TraceSettings { linear_radiance: true, opaque_below: t0, ..Default::default() };
+            let tracer = Tracer::build(&s, &settings);
+            let mut c = SpecularSamples::default();
+            c.trace(&lobe(&tracer, &s, &env, 16, 5), &[0], &[0.1, 0.5], &[n, [0.0, 0.0, -1.0]], &[wo, wo]);
+            (c.visibility.clone(), c.indirect.clone())
+        };
+        let ((v0, i0), (v1, i1)) = (traced_with(0.0), traced_with(0.5));
+        assert!(v0.iter().any(|&v| v > 0.1 && v < 0.5), "{v0:?}");
+        for q in 0..v0.len() {
+            let (v, g, _, _) = crate::trace::visibility_ramp(v0[q], 0.5);
+            assert!((v1[q] - v).abs() < 1e-6 && (0..3).all(|c| (i1[q][c] - g * i0[q][c]).abs() < 1e-5), "sample {q}");
+        }
     }
 
     /// The backward through the traced samples is pbr.rs's: compare with finite differences of

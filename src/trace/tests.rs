@@ -1067,3 +1067,30 @@ fn merging_by_surfel_ranges_changes_no_bit() {
         assert!(run(range) == one_range, "merge range {range} changed the sums");
     }
 }
+
+/// The visibility ramp keeps V + g·(1 − T) = 1, is the identity when off, and its derivatives
+/// match central differences away from the kink at t₀.
+#[test]
+fn visibility_ramp_conserves_the_coverage_and_its_derivatives_match() {
+    assert_eq!(visibility_ramp(0.37, 0.0), (0.37, 1.0, 1.0, 0.0));
+    for &t0 in &[0.05f32, 0.1, 0.3] {
+        assert_eq!(visibility_ramp(0.0, t0).0, 0.0);
+        assert!((visibility_ramp(1.0, t0).0 - 1.0).abs() < 1e-6);
+        for k in 0..=40 {
+            let t = k as f32 / 41.0 + 0.01;
+            let (v, g, dv, dg) = visibility_ramp(t, t0);
+            assert!((v + g * (1.0 - t) - 1.0).abs() < 1e-5, "t0 {t0} T {t}: V {v} g {g}");
+            if (t - t0).abs() < 2e-3 {
+                continue;
+            }
+            let h = 1e-3f64;
+            let at = |x: f64| {
+                let (v, g, _, _) = visibility_ramp(x as f32, t0);
+                (v as f64, g as f64)
+            };
+            let ((va, ga), (vb, gb)) = (at(t as f64 + h), at(t as f64 - h));
+            assert!(((va - vb) / (2.0 * h) - dv as f64).abs() < 1e-2, "t0 {t0} T {t}: dV");
+            assert!(((ga - gb) / (2.0 * h) - dg as f64).abs() < 1e-2 * (1.0 + dg.abs() as f64), "t0 {t0} T {t}: dg");
+        }
+    }
+}

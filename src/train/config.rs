@@ -494,6 +494,14 @@ pub struct TrainConfig {
     #[arg(long, default_value_t = 20.0)]
     #[serde(default = "grazing_off")]
     pub trace_grazing: f32,
+    /// The shading reads a traced ray whose final transmittance is below this as fully blocked,
+    /// its composited radiance scaled to the whole ray (`visibility_ramp` in src/trace/mod.rs;
+    /// 0 = off, as RadioGS): a trained surface is a few translucent layers and lets a few per
+    /// cent of the sky into the shadows behind it, a large share of a deep shadow's light.
+    /// Runs saved before the setting load as 0.
+    #[arg(long, default_value_t = 0.1)]
+    #[serde(default = "opaque_below_off")]
+    pub trace_opaque_below: f32,
     /// The inverse stage drops the geometry's surfels whose largest blend weight (α T) over
     /// every training pixel is below this when it starts (0 = keep all, the default): hidden
     /// layers and faint fringes no view shows, which every later render and trace pays for
@@ -523,6 +531,11 @@ fn albedo_voxel_off() -> f32 {
 
 /// What runs saved before `trace_grazing` traced with: strict culling.
 fn grazing_off() -> f32 {
+    0.0
+}
+
+/// What runs saved before `trace_opaque_below` shaded with: the transmittance as it is.
+fn opaque_below_off() -> f32 {
     0.0
 }
 
@@ -767,6 +780,9 @@ impl TrainConfig {
         if !(0.0..=45.0).contains(&self.trace_grazing) {
             return bad("trace_grazing", format!("{} is not in [0, 45] degrees", self.trace_grazing));
         }
+        if !(0.0..=0.9).contains(&self.trace_opaque_below) {
+            return bad("trace_opaque_below", format!("{} is not in [0, 0.9]", self.trace_opaque_below));
+        }
         if !(1..=256).contains(&self.rc_rays) {
             return bad("rc_rays", format!("{} is not in 1..=256", self.rc_rays));
         }
@@ -1007,6 +1023,8 @@ mod tests {
         );
         assert_eq!((merged.trace_grazing, d.trace_grazing), (20.0, 20.0));
         assert_ne!(d.trace_grazing, grazing_off());
+        assert_eq!(merged.trace_opaque_below, d.trace_opaque_below);
+        assert_ne!(d.trace_opaque_below, opaque_below_off());
         assert_eq!(
             toml::to_string(&TrainConfig { iters: 3000, config: Some(file.clone()), ..d.clone() }).unwrap(),
             toml::to_string(&merged).unwrap()
@@ -1017,7 +1035,13 @@ mod tests {
         std::fs::write(run.join("config.toml"), "iters = 3000\n").unwrap();
         let saved = crate::eval::load_run_config(&run).unwrap();
         // A run's file is validated as `train`'s settings are, naming the file and the setting.
-        for bad in ["window = 0\n", "filter_inv_square = nan\n", "trace_grazing = 90.0\n", "trace_grazing = nan\n"] {
+        for bad in [
+            "window = 0\n",
+            "filter_inv_square = nan\n",
+            "trace_grazing = 90.0\n",
+            "trace_grazing = nan\n",
+            "trace_opaque_below = 1.0\n",
+        ] {
             std::fs::write(run.join("config.toml"), format!("iters = 3000\n{bad}")).unwrap();
             let err = crate::eval::load_run_config(&run).unwrap_err().to_string();
             let key = bad.split(' ').next().unwrap();
@@ -1032,6 +1056,7 @@ mod tests {
         assert_eq!(saved.albedo_init_hue, 0.0, "the grey start runs before the setting had");
         assert_eq!(saved.trace_back_faces, TraceBackFaces::Cull, "the culled tracing runs before the setting had");
         assert_eq!(saved.trace_grazing, 0.0, "the strict culling runs before the setting had");
+        assert_eq!(saved.trace_opaque_below, 0.0, "the unramped visibility runs before the setting had");
 
         std::fs::write(&file, "scale_position_lr = false\nfilter_inv_square = 2.0\nopacity_reset_cap = 0.01\n")
             .unwrap();

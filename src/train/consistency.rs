@@ -26,7 +26,9 @@ use crate::shade::incident::{RayStart, decode, decode_derivative, rotation_for, 
 use crate::shade::pbr::{Detach, PbrGrads, PbrInputs, shade_surfels, shade_surfels_backward};
 use crate::shade::sampling::uniform_hemisphere;
 use crate::surfels::{SurfelGrads, Surfels};
-use crate::trace::{HitRecord, Ray, RayGrad, RayOutput, Tracer, trace, trace_backward_recorded, trace_recorded};
+use crate::trace::{
+    HitRecord, Ray, RayGrad, RayOutput, Tracer, trace, trace_backward_recorded, trace_recorded, visibility_ramp,
+};
 use rand::RngExt;
 
 /// sRGB encoding extended above 1 (no clamp; 0 below 0).
@@ -114,6 +116,8 @@ pub struct RcScratch {
     pub weight: f32,
     /// The tracer's radiance is already linear (`TraceSettings::linear_radiance`).
     linear: bool,
+    /// The tracer's `opaque_below` (the shading's visibility ramp).
+    opaque_below: f32,
 }
 
 impl RcScratch {
@@ -122,8 +126,14 @@ impl RcScratch {
         let rng = k * r..(k + 1) * r;
         (
             self.dirs[rng.clone()].to_vec(),
-            self.out[rng.clone()].iter().map(|o| o.transmittance).collect(),
-            self.out[rng].iter().map(|o| if self.linear { o.radiance } else { o.radiance.map(decode) }).collect(),
+            self.out[rng.clone()].iter().map(|o| visibility_ramp(o.transmittance, self.opaque_below).0).collect(),
+            self.out[rng]
+                .iter()
+                .map(|o| {
+                    let g = visibility_ramp(o.transmittance, self.opaque_below).1;
+                    if self.linear { o.radiance } else { o.radiance.map(decode) }.map(|x| x * g)
+                })
+                .collect(),
         )
     }
 }
@@ -184,6 +194,7 @@ pub fn radiometric_consistency(
         trace_recorded(tracer, surfels, &sc.rays, &mut sc.out, &mut sc.record);
     }
     sc.linear = tracer.settings.linear_radiance;
+    sc.opaque_below = tracer.settings.opaque_below;
 
     // Two entries per surfel: 2k = ω_cam, 2k + 1 = ω_rand; both share the traced samples.
     let m = 2 * b;
@@ -211,9 +222,10 @@ pub fn radiometric_consistency(
             sc.valid[e] = nn[0] * w[0] + nn[1] * w[1] + nn[2] * w[2] > 1e-4;
             for j in 0..r {
                 let o = &sc.out[k * r + j];
+                let (v, g, _, _) = visibility_ramp(o.transmittance, sc.opaque_below);
                 sc.dirs2[e * r + j] = sc.dirs[k * r + j];
-                sc.vis2[e * r + j] = o.transmittance;
-                sc.ind2[e * r + j] = if sc.linear { o.radiance } else { o.radiance.map(decode) };
+                sc.vis2[e * r + j] = v;
+                sc.ind2[e * r + j] = if sc.linear { o.radiance } else { o.radiance.map(decode) }.map(|x| x * g);
             }
         }
     }
@@ -312,17 +324,19 @@ pub fn radiometric_consistency(
     for k in 0..b {
         for j in 0..r {
             let (e0, e1) = ((2 * k) * r + j, (2 * k + 1) * r + j);
-            let rad = sc.out[k * r + j].radiance;
+            let o = &sc.out[k * r + j];
+            let rad = o.radiance;
+            // Through the ramp: V(T), and the indirect light g(T)·L(C).
+            let (_, scale, dv_dt, dg_dt) = visibility_ramp(o.transmittance, sc.opaque_below);
+            let mut v_t = (g.v_visibility[e0] + g.v_visibility[e1]) * dv_dt;
             let v_ind: [f32; 3] = std::array::from_fn(|ch| {
-                let d = if sc.linear { 1.0 } else { decode_derivative(rad[ch]) };
-                (g.v_indirect[e0][ch] + g.v_indirect[e1][ch]) * d
+                let (l, d) = if sc.linear { (rad[ch], 1.0) } else { (decode(rad[ch]), decode_derivative(rad[ch])) };
+                let v_l = g.v_indirect[e0][ch] + g.v_indirect[e1][ch];
+                v_t += v_l * l * dg_dt;
+                v_l * scale * d
             });
-            sc.ray_grads[k * r + j] = RayGrad {
-                v_radiance: v_ind,
-                v_transmittance: g.v_visibility[e0] + g.v_visibility[e1],
-                v_depth: 0.0,
-                v_normal: [0.0; 3],
-            };
+            sc.ray_grads[k * r + j] =
+                RayGrad { v_radiance: v_ind, v_transmittance: v_t, v_depth: 0.0, v_normal: [0.0; 3] };
         }
     }
     trace_backward_recorded(tracer, surfels, &sc.rays, &sc.ray_grads, v_surfels, None, &sc.record);
@@ -390,9 +404,14 @@ mod tests {
     }
 
     fn loss_and_grads_with(s: &Surfels, env: &EnvMap, cfg: &RcSettings, linear: bool) -> Grads {
+        loss_and_grads_ramped(s, env, cfg, linear, 0.0)
+    }
+
+    fn loss_and_grads_ramped(s: &Surfels, env: &EnvMap, cfg: &RcSettings, linear: bool, opaque_below: f32) -> Grads {
         let mut view = MaterialView::default();
         view.update(s);
-        let settings = TraceSettings { min_transmittance: 0.0, linear_radiance: linear, ..TraceSettings::default() };
+        let settings =
+            TraceSettings { min_transmittance: 0.0, linear_radiance: linear, opaque_below, ..TraceSettings::default() };
         let tracer = Tracer::build(s, &settings);
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
         let mut v = s.zeros_like();
@@ -444,12 +463,25 @@ mod tests {
         (near(fd) || (kink && (near(up) || near(down))), fd)
     }
 
+    /// The visibility ramp (`TraceSettings::opaque_below`) chains through V(T) and g(T)·L:
+    /// high enough that part of the rays fall below it, part above.
+    #[test]
+    fn gradients_match_finite_differences_through_the_visibility_ramp() {
+        check_gradients_ramped(true, false, 0.5);
+        check_gradients_ramped(false, false, 0.3);
+    }
+
     fn check_gradients(linear: bool) {
         check_gradients_with(linear, false);
     }
 
     fn check_gradients_with(linear: bool, linear_l2: bool) {
-        let loss_and_grads = |s: &Surfels, e: &EnvMap, c: &RcSettings| loss_and_grads_with(s, e, c, linear);
+        check_gradients_ramped(linear, linear_l2, 0.0);
+    }
+
+    fn check_gradients_ramped(linear: bool, linear_l2: bool, opaque_below: f32) {
+        let loss_and_grads =
+            |s: &Surfels, e: &EnvMap, c: &RcSettings| loss_and_grads_ramped(s, e, c, linear, opaque_below);
         let s = scene();
         let mut env = EnvMap::constant(16, 8, [0.0; 3]);
         for (k, t) in env.texels.iter_mut().enumerate() {

@@ -76,7 +76,8 @@ pub fn trace_settings() -> TraceSettings {
 }
 
 /// How the PBR stages' traced rays treat back faces: `--trace-back-faces` and, for
-/// `dark-unseen`, which surfels no camera saw (one flag per surfel; without flags it culls).
+/// `dark-unseen`, which surfels no camera saw (one flag per surfel; without flags it culls);
+/// and how the shading reads a ray's final transmittance (`--trace-opaque-below`).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct BackFaces {
     pub mode: TraceBackFaces,
@@ -84,11 +85,13 @@ pub struct BackFaces {
     /// One-sided modes: back faces within this many degrees past edge-on are still hit
     /// (`--trace-grazing`; [`TraceSettings::grazing_sin`]).
     pub grazing_deg: f32,
+    /// The shading's visibility ramp ([`TraceSettings::opaque_below`]; 0 = off).
+    pub opaque_below: f32,
 }
 
 impl From<TraceBackFaces> for BackFaces {
     fn from(mode: TraceBackFaces) -> Self {
-        BackFaces { mode, unseen: None, grazing_deg: 0.0 }
+        BackFaces { mode, unseen: None, grazing_deg: 0.0, opaque_below: 0.0 }
     }
 }
 
@@ -114,12 +117,12 @@ impl BackFaces {
             "{source}: {} unseen flags for {count} surfels (from another run?)",
             flags.len()
         );
-        Ok(BackFaces { mode, unseen: Some(flags.into()), grazing_deg: 0.0 })
+        Ok(BackFaces { mode, unseen: Some(flags.into()), grazing_deg: 0.0, opaque_below: 0.0 })
     }
 
-    /// The same with the grazing tolerance `deg` (a run's `trace_grazing`).
-    pub fn with_grazing(self, deg: f32) -> BackFaces {
-        BackFaces { grazing_deg: deg, ..self }
+    /// The same with the grazing tolerance and the visibility ramp of a run's config.
+    pub fn of_config(self, cfg: &TrainConfig) -> BackFaces {
+        BackFaces { grazing_deg: cfg.trace_grazing, opaque_below: cfg.trace_opaque_below, ..self }
     }
 }
 
@@ -138,6 +141,7 @@ pub fn trace_settings_with(back_faces: &BackFaces) -> TraceSettings {
         dark_back_faces,
         back_occluders,
         grazing_sin,
+        opaque_below: back_faces.opaque_below,
         ..TraceSettings::default()
     }
 }
@@ -273,6 +277,7 @@ impl InverseState {
             mode: cfg.trace_back_faces,
             unseen: Some(Arc::from(self.unseen.as_slice())),
             grazing_deg: cfg.trace_grazing,
+            opaque_below: cfg.trace_opaque_below,
         }
     }
 
@@ -1568,9 +1573,42 @@ mod tests {
             mode: TraceBackFaces::DarkUnseen,
             unseen: Some(flags.into()),
             grazing_deg: 0.0,
+            opaque_below: 0.0,
         };
         assert_eq!(cache_of(unseen([false, true])), dark);
         assert_eq!(cache_of(unseen([true, false])), cull);
         assert_eq!(cache_of(TraceBackFaces::DarkUnseen.into()), cull, "without flags it culls");
+    }
+
+    /// `--trace-opaque-below` through the incident cache: a floor surfel under a translucent
+    /// surfel facing it. Every cached sample is the unramped one mapped by `visibility_ramp`,
+    /// and the rays through the surfel's core count as blocked.
+    #[test]
+    fn the_visibility_ramp_reaches_the_incident_cache() {
+        let mut s = Surfels::default();
+        let up = crate::surfels::quat_with_normal([0.0, 0.0, 1.0]);
+        let down = crate::surfels::quat_with_normal([0.0, 0.0, -1.0]);
+        s.push([0.0; 3], [0.05, 0.05], up, 0.9, [0.5; 3], [0.5; 3], 0.5);
+        s.push([0.0, 0.0, 0.3], [0.4, 0.4], down, 0.8, [0.9, 0.6, 0.3], [0.5; 3], 0.5);
+        let samples = 64;
+        let cache_of = |t0: f32| {
+            let mode = BackFaces { opaque_below: t0, ..TraceBackFaces::Cull.into() };
+            let tracer = Tracer::build(&s, &trace_settings_with(&mode));
+            let mut cache = IncidentCache::default();
+            cache.refresh(&tracer, &s, samples, crate::shade::incident::RayStart::offset_only(1e-3), 5);
+            cache
+        };
+        let (plain, ramped) = (cache_of(0.0), cache_of(0.5));
+        let mut blocked = 0;
+        for k in 0..samples {
+            let (v, g, _, _) = crate::trace::visibility_ramp(plain.visibility[k], 0.5);
+            assert!((ramped.visibility[k] - v).abs() < 1e-6, "sample {k}");
+            for c in 0..3 {
+                assert!((ramped.indirect[k][c] - g * plain.indirect[k][c]).abs() < 1e-5, "sample {k} ch {c}");
+            }
+            blocked += (plain.visibility[k] > 0.0 && plain.visibility[k] < 0.5) as usize;
+            assert!(ramped.visibility[k] <= plain.visibility[k]);
+        }
+        assert!(blocked > 3, "only {blocked} samples under the ramp");
     }
 }

@@ -1090,6 +1090,35 @@ mod tests {
         (f.get(11).copied().unwrap_or(0.0) + f.get(12).copied().unwrap_or(0.0)) / 100.0
     }
 
+    /// The env-gradient sum over several groups (a view's backward over more than
+    /// REDUCE_GROUP × 64 surfels; the finite-difference tests have one group): per texel the
+    /// groups' sum in group order, over texel counts that do and do not fill the parallel
+    /// ranges; detached (empty) groups are skipped; no group at all gives zeros.
+    #[test]
+    fn env_gradient_groups_sum_per_texel_in_group_order() {
+        let mut r = rng(77);
+        for (groups, texels) in [(1usize, 100usize), (3, 512), (5, 1500), (9, 8192)] {
+            let g: Vec<Vec<f32x4>> = (0..groups)
+                .map(|_| (0..texels).map(|_| f32x4::from([r.random(), r.random(), r.random(), 0.0])).collect())
+                .collect();
+            let mut with_empty = g.clone();
+            with_empty.insert(1.min(groups), Vec::new());
+            let mut out = vec![[9.0f32; 3]; texels];
+            store_env_gradient(with_empty, &mut out);
+            for t in 0..texels {
+                let mut want = g[0][t];
+                for gg in &g[1..] {
+                    want += gg[t];
+                }
+                let w = want.to_array();
+                assert_eq!(out[t], [w[0], w[1], w[2]], "{groups} groups, texel {t}");
+            }
+        }
+        let mut out = vec![[9.0f32; 3]; 7];
+        store_env_gradient(vec![Vec::new(), Vec::new()], &mut out);
+        assert!(out.iter().all(|x| *x == [0.0; 3]));
+    }
+
     /// Throughput for BENCHMARKS-shade.md: `cargo test --release --lib
     /// shade::pbr::tests::throughput -- --ignored --nocapture`.
     #[test]

@@ -24,6 +24,9 @@ use crate::error::{Error, Result};
 use rayon::prelude::*;
 use wide::{f32x4, f64x8};
 
+mod linearised;
+pub use linearised::{LinearisedShading, shade_subset_linearised, shade_subset_linearised_backward};
+
 /// SoA inputs: N surfels, S samples each (per-sample arrays are N·S, surfel-major).
 #[derive(Clone, Copy)]
 pub struct PbrInputs<'a> {
@@ -158,6 +161,8 @@ impl PbrInputs<'_> {
 /// surfels: ~36 per 36k-surfel view instead of 142 at 4 chunks (whose zeroing and summing took
 /// a few ms an iteration).
 const REDUCE_GROUP: usize = 16;
+/// Surfels per parallel chunk of the backward passes.
+const CHUNK_SURFELS: usize = 64;
 
 #[inline]
 fn splat(x: f64) -> f64x8 {
@@ -453,17 +458,16 @@ pub fn shade_surfels_backward(
         *grads = PbrGrads::new(n, 0, env.texels.len());
         return Ok(());
     }
-    const CHUNK: usize = 64;
     let texels = env.texels.len();
     let lane_env = &LaneEnv::new(env);
     let v_env = grads
         .v_albedo
-        .par_chunks_mut(CHUNK)
-        .zip(grads.v_roughness.par_chunks_mut(CHUNK))
-        .zip(grads.v_normal.par_chunks_mut(CHUNK))
-        .zip(grads.v_view.par_chunks_mut(CHUNK))
-        .zip(grads.v_visibility.par_chunks_mut(CHUNK * s))
-        .zip(grads.v_indirect.par_chunks_mut(CHUNK * s))
+        .par_chunks_mut(CHUNK_SURFELS)
+        .zip(grads.v_roughness.par_chunks_mut(CHUNK_SURFELS))
+        .zip(grads.v_normal.par_chunks_mut(CHUNK_SURFELS))
+        .zip(grads.v_view.par_chunks_mut(CHUNK_SURFELS))
+        .zip(grads.v_visibility.par_chunks_mut(CHUNK_SURFELS * s))
+        .zip(grads.v_indirect.par_chunks_mut(CHUNK_SURFELS * s))
         .enumerate()
         // Fixed groups of chunks, summed in order: the env gradient does not depend on how
         // rayon schedules the work (a plain fold + reduce made resumed runs differ).
@@ -472,7 +476,7 @@ pub fn shade_surfels_backward(
             || if detach.env { Vec::new() } else { vec![f32x4::ZERO; texels] },
             |mut acc, (c, (((((va, vr), vn), vv), vvis), vind))| {
                 for j in 0..va.len() {
-                    let i = c * CHUNK + j;
+                    let i = c * CHUNK_SURFELS + j;
                     let (ga, gr, gn, gv) = backward_one(
                         inp,
                         lane_env,
@@ -554,20 +558,19 @@ pub fn shade_subset_backward(
     grads.v_view.resize(m, [0.0; 3]);
     let texels = env.texels.len();
     let lane_env = &LaneEnv::new(env);
-    const CHUNK: usize = 64;
     let v_env = grads
         .v_albedo
-        .par_chunks_mut(CHUNK)
-        .zip(grads.v_roughness.par_chunks_mut(CHUNK))
-        .zip(grads.v_normal.par_chunks_mut(CHUNK))
-        .zip(grads.v_view.par_chunks_mut(CHUNK))
+        .par_chunks_mut(CHUNK_SURFELS)
+        .zip(grads.v_roughness.par_chunks_mut(CHUNK_SURFELS))
+        .zip(grads.v_normal.par_chunks_mut(CHUNK_SURFELS))
+        .zip(grads.v_view.par_chunks_mut(CHUNK_SURFELS))
         .enumerate()
         .fold_chunks(
             REDUCE_GROUP,
             || if detach.env { Vec::new() } else { vec![f32x4::ZERO; texels] },
             |mut acc, (c, (((va, vr), vn), vv))| {
                 for j in 0..va.len() {
-                    let k = c * CHUNK + j;
+                    let k = c * CHUNK_SURFELS + j;
                     // No upstream gradient (e.g. a surfel the rasteriser did not reach): every
                     // gradient of the entry is zero.
                     if v_direct[k] == [0.0; 3] && v_indirect[k] == [0.0; 3] {
@@ -601,31 +604,31 @@ pub fn shade_subset_backward(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::shade::sampling::{ElevationFloor, MIN_ELEVATION_DEG, fibonacci_hemisphere};
     use crate::shade::testutil::{close, rng, unit, unit_in};
     use rand::RngExt;
     use std::f64::consts::PI;
 
-    struct Case {
-        albedo: Vec<[f32; 3]>,
-        rough: Vec<f32>,
-        normal: Vec<[f32; 3]>,
-        view: Vec<[f32; 3]>,
-        dirs: Vec<[f32; 3]>,
-        vis: Vec<f32>,
-        ind: Vec<[f32; 3]>,
-        s: usize,
-        weight: f32,
-        specular: bool,
-        lambert: bool,
+    pub(in crate::shade::pbr) struct Case {
+        pub albedo: Vec<[f32; 3]>,
+        pub rough: Vec<f32>,
+        pub normal: Vec<[f32; 3]>,
+        pub view: Vec<[f32; 3]>,
+        pub dirs: Vec<[f32; 3]>,
+        pub vis: Vec<f32>,
+        pub ind: Vec<[f32; 3]>,
+        pub s: usize,
+        pub weight: f32,
+        pub specular: bool,
+        pub lambert: bool,
         /// Per-sample weights instead of `weight` (importance sampling).
-        sample_weights: Option<Vec<f32>>,
+        pub sample_weights: Option<Vec<f32>>,
     }
 
     impl Case {
-        fn inputs(&self) -> PbrInputs<'_> {
+        pub(in crate::shade::pbr) fn inputs(&self) -> PbrInputs<'_> {
             PbrInputs {
                 albedo: &self.albedo,
                 roughness: &self.rough,
@@ -644,7 +647,7 @@ mod tests {
         }
     }
 
-    fn random_case(n: usize, s: usize, seed: u64) -> Case {
+    pub(in crate::shade::pbr) fn random_case(n: usize, s: usize, seed: u64) -> Case {
         let mut rg = rng(seed);
         let normal: Vec<[f32; 3]> = (0..n).map(|_| to32(unit(&mut rg))).collect();
         let view = normal.iter().map(|nn| to32(unit_in(&mut rg, to64(*nn), 0.02))).collect();
@@ -687,7 +690,7 @@ mod tests {
         }
     }
 
-    fn random_env(h: usize, w: usize, seed: u64) -> EnvMap {
+    pub(in crate::shade::pbr) fn random_env(h: usize, w: usize, seed: u64) -> EnvMap {
         let mut rg = rng(seed);
         let mut env = EnvMap::constant(w, h, [0.0; 3]);
         for t in env.texels.iter_mut() {
@@ -1155,6 +1158,27 @@ mod tests {
             shade_surfels_backward(&inputs, &env, &v, &v, Detach::default(), &mut g).unwrap();
             let cpu = cpu_seconds() - cpu1;
             let what = if cached { "cached footprints" } else { "directions mapped per lookup" };
+            // The training iteration's path: the linearised forward and its backward.
+            let ids: Vec<u32> = (0..n as u32).collect();
+            let mut lin = LinearisedShading::default();
+            let mut sub = SubsetGrads::default();
+            shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+            let t0 = std::time::Instant::now();
+            for _ in 0..reps {
+                shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+            }
+            let tlf = t0.elapsed().as_secs_f64() / reps as f64;
+            let t0 = std::time::Instant::now();
+            for _ in 0..reps {
+                shade_subset_linearised_backward(&inputs, &env, &ids, &lin, &v, &mut sub).unwrap();
+            }
+            let tlb = t0.elapsed().as_secs_f64() / reps as f64;
+            println!(
+                "pbr linearised ({what}): forward {:.1} ms, backward {:.1} ms, forward+backward {:.1} ms",
+                tlf * 1e3,
+                tlb * 1e3,
+                (tlf + tlb) * 1e3
+            );
             println!(
                 "pbr ({what}) CPU time (all threads) for one forward+backward: {:.1} ms = {:.3} µs per surfel-sample",
                 cpu * 1e3,

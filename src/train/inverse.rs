@@ -39,7 +39,9 @@ use crate::loss::{self, EdgeAwareSmoothness, NormalConsistency, Ssim};
 use crate::optim::{LearningRates, SurfelAdam};
 use crate::raster::{self, Features, Outputs, RasterSettings, RenderGrads};
 use crate::shade::incident::{EnvImportance, IncidentCache};
-use crate::shade::pbr::{Detach, SubsetGrads, shade_subset, shade_subset_backward};
+use crate::shade::pbr::{
+    Detach, LinearisedShading, SubsetGrads, shade_subset, shade_subset_linearised, shade_subset_linearised_backward,
+};
 use crate::shade::splitsum::{SplitSum, SplitSumGrads};
 use crate::shade::traced_specular::{SpecularSamples, TracedSpecular};
 use crate::surfels::{Surfels, albedo_to_logit, logit};
@@ -436,6 +438,10 @@ pub struct SurfelShading {
     pub traced: SpecularSamples,
     traced_direct: Vec<[f32; 3]>,
     traced_indirect: Vec<[f32; 3]>,
+    /// Shade with the Jacobian kept for the training
+    /// iteration's backward, `shade_subset_linearised_backward`) instead of the plain forward.
+    pub linearise: bool,
+    lin: LinearisedShading,
 }
 
 impl SurfelShading {
@@ -475,7 +481,12 @@ impl SurfelShading {
         self.indirect.resize(m, [0.0; 3]);
         let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &self.view);
         inp.specular = matches!(lobe, SpecularLobe::Cached);
-        shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect).expect("sized above");
+        if self.linearise {
+            shade_subset_linearised(&inp, env, &self.active, &mut self.direct, &mut self.indirect, &mut self.lin)
+        } else {
+            shade_subset(&inp, env, &self.active, &mut self.direct, &mut self.indirect)
+        }
+        .expect("sized above");
         let traced_env = match &lobe {
             SpecularLobe::Traced(spec) => {
                 self.traced.trace(spec, &self.active, &mats.roughness, &mats.normal, &self.view);
@@ -699,6 +710,7 @@ fn iterate(
     let t0 = Instant::now();
     sc.mats.update(s);
     let lobe = specular_lobe(cfg, state, env_full, split_sum, tracer);
+    sc.shading.linearise = true;
     sc.shading.compute(s, &sc.mats, &state.cache, env, lobe, cam, ch);
     let t1 = Instant::now();
     t.shading += (t1 - t0).as_secs_f64();
@@ -828,8 +840,7 @@ fn iterate(
     }));
     let mut inp = state.cache.inputs(&sc.mats.albedo, &sc.mats.roughness, &sc.mats.normal, &sh.view);
     inp.specular = matches!(lobe, SpecularLobe::Cached);
-    shade_subset_backward(&inp, env, &sh.active, &sc.v_sub_pbr, &sc.v_sub_pbr, Detach::default(), &mut sc.sub)
-        .expect("sized above");
+    shade_subset_linearised_backward(&inp, env, &sh.active, &sh.lin, &sc.v_sub_pbr, &mut sc.sub).expect("sized above");
     if let Some(ss) = split_sum {
         let grads = sc.ss_grads.get_or_insert_with(|| ss.zero_grads());
         sh.split_sum_backward(ss, &sc.mats, &sc.v_sub_pbr, &mut sc.sub, grads);
@@ -1252,6 +1263,7 @@ pub fn run_until(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::shade::pbr::shade_subset_backward;
     use crate::shade::splitsum::BrdfLut;
 
     /// A checkpoint whose cache blobs disagree in length (cut, or from another run) is refused

@@ -15,7 +15,10 @@
 //! lane (`load_block`), the specular lobe (`brdf_lanes::Lobe`, bitwise the scalar lobe), the
 //! products and the sums run in SIMD, and the lane sums are added in lane order at the end. The
 //! backward recomputes the forward terms (nothing saved) and accumulates the env-texel gradient
-//! in one buffer per rayon job, summed at the end.
+//! in one buffer per rayon job, summed at the end. The inverse iteration's PBR image uses the
+//! linearised pair instead ([`linearised`]: the forward keeps each entry's Jacobian, so its
+//! backward does not pass over the samples again but for the env's scatter); the general
+//! backward stays for the consistency (gradients to the traced samples) and as its reference.
 
 use super::brdf_lanes::{LANES, Lobe};
 use super::{V3, add, brdf, dot, scale, to32, to64};

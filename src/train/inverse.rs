@@ -1263,7 +1263,6 @@ pub fn run_until(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::shade::pbr::shade_subset_backward;
     use crate::shade::splitsum::BrdfLut;
 
     /// A checkpoint whose cache blobs disagree in length (cut, or from another run) is refused
@@ -1343,8 +1342,8 @@ mod tests {
     }
 
     /// The split-sum PBR colour of `SurfelShading` (Lambert Monte Carlo + occluded split-sum
-    /// lobe) against finite differences of its backward (`shade_subset_backward` with the
-    /// Lambert-only inputs + `split_sum_backward`), per roughness, normal and env texel. The
+    /// lobe) against finite differences of its backward (`shade_subset_linearised_backward`
+    /// with the Lambert-only inputs + `split_sum_backward`), per roughness, normal and env texel. The
     /// normal check runs on lone surfels (V = 1, no fill), where the lobe's occlusion does not
     /// depend on the normal (the backward holds occlusion and fill constant).
     #[test]
@@ -1397,14 +1396,15 @@ mod tests {
             };
             // Analytic gradients.
             let ss = SplitSum::new(&env).unwrap();
-            let mut sh = SurfelShading::default();
+            // The training iteration's pair: the linearised shading and its backward.
+            let mut sh = SurfelShading { linearise: true, ..Default::default() };
             sh.compute(&s, &mats, &cache, &env, SpecularLobe::SplitSum(&ss), &cam, TRAIN_CHANNELS);
             assert!(sh.active.len() >= 3, "{} active", sh.active.len());
             let v_sub: Vec<[f32; 3]> = (0..sh.active.len()).map(|k| v_pbr[k]).collect();
             let mut inp = cache.inputs(&mats.albedo, &mats.roughness, &mats.normal, &sh.view);
             inp.specular = false;
             let mut sub = SubsetGrads::default();
-            shade_subset_backward(&inp, &env, &sh.active, &v_sub, &v_sub, Detach::default(), &mut sub).unwrap();
+            shade_subset_linearised_backward(&inp, &env, &sh.active, &sh.lin, &v_sub, &mut sub).unwrap();
             let mut grads = ss.zero_grads();
             sh.split_sum_backward(&ss, &mats, &v_sub, &mut sub, &mut grads);
             let mut v_env = sub.v_env.clone();

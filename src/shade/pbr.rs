@@ -540,6 +540,49 @@ pub struct SubsetGrads {
     pub v_env: Vec<[f32; 3]>,
 }
 
+/// One entry's (albedo, roughness, normal, view) gradients.
+type EntryGrads = ([f32; 3], f32, [f32; 3], [f32; 3]);
+
+impl SubsetGrads {
+    /// Fill the `m` entries' gradients with `entry(k, env accumulator)` → (albedo, roughness,
+    /// normal, view) in parallel chunks, and the env's from the accumulators (none when
+    /// `detach_env`: zeros). The chunks' accumulators are summed in fixed groups, in order: the
+    /// env gradient does not depend on how rayon schedules the work (a plain fold + reduce made
+    /// resumed runs differ).
+    fn fill(
+        &mut self,
+        m: usize,
+        texels: usize,
+        detach_env: bool,
+        entry: impl Fn(usize, &mut [f32x4]) -> EntryGrads + Sync,
+    ) {
+        self.v_albedo.resize(m, [0.0; 3]);
+        self.v_roughness.resize(m, 0.0);
+        self.v_normal.resize(m, [0.0; 3]);
+        self.v_view.resize(m, [0.0; 3]);
+        let v_env = self
+            .v_albedo
+            .par_chunks_mut(CHUNK_SURFELS)
+            .zip(self.v_roughness.par_chunks_mut(CHUNK_SURFELS))
+            .zip(self.v_normal.par_chunks_mut(CHUNK_SURFELS))
+            .zip(self.v_view.par_chunks_mut(CHUNK_SURFELS))
+            .enumerate()
+            .fold_chunks(
+                REDUCE_GROUP,
+                || if detach_env { Vec::new() } else { vec![f32x4::ZERO; texels] },
+                |mut acc, (c, (((va, vr), vn), vv))| {
+                    for j in 0..va.len() {
+                        (va[j], vr[j], vn[j], vv[j]) = entry(c * CHUNK_SURFELS + j, &mut acc);
+                    }
+                    acc
+                },
+            )
+            .collect::<Vec<_>>();
+        self.v_env.resize(texels, [0.0; 3]);
+        store_env_gradient(v_env, &mut self.v_env);
+    }
+}
+
 /// Backward of [`shade_subset`] for upstream gradients on L_direct and L_indirect (per entry).
 pub fn shade_subset_backward(
     inp: &PbrInputs,
@@ -555,54 +598,27 @@ pub fn shade_subset_backward(
     if v_direct.len() != m || v_indirect.len() != m {
         return Err(Error::invalid("PBR upstream gradients", format!("need {m} entries")));
     }
-    grads.v_albedo.resize(m, [0.0; 3]);
-    grads.v_roughness.resize(m, 0.0);
-    grads.v_normal.resize(m, [0.0; 3]);
-    grads.v_view.resize(m, [0.0; 3]);
-    let texels = env.texels.len();
     let lane_env = &LaneEnv::new(env);
-    let v_env = grads
-        .v_albedo
-        .par_chunks_mut(CHUNK_SURFELS)
-        .zip(grads.v_roughness.par_chunks_mut(CHUNK_SURFELS))
-        .zip(grads.v_normal.par_chunks_mut(CHUNK_SURFELS))
-        .zip(grads.v_view.par_chunks_mut(CHUNK_SURFELS))
-        .enumerate()
-        .fold_chunks(
-            REDUCE_GROUP,
-            || if detach.env { Vec::new() } else { vec![f32x4::ZERO; texels] },
-            |mut acc, (c, (((va, vr), vn), vv))| {
-                for j in 0..va.len() {
-                    let k = c * CHUNK_SURFELS + j;
-                    // No upstream gradient (e.g. a surfel the rasteriser did not reach): every
-                    // gradient of the entry is zero.
-                    if v_direct[k] == [0.0; 3] && v_indirect[k] == [0.0; 3] {
-                        (va[j], vr[j], vn[j], vv[j]) = ([0.0; 3], 0.0, [0.0; 3], [0.0; 3]);
-                        continue;
-                    }
-                    let (ga, gr, gn, gv) = backward_one(
-                        inp,
-                        lane_env,
-                        ids[k] as usize,
-                        to64(v_direct[k]),
-                        to64(v_indirect[k]),
-                        detach,
-                        // No gradients to the cache: the per-sample ones are not written.
-                        &mut [],
-                        &mut [],
-                        &mut acc,
-                    );
-                    va[j] = to32(ga);
-                    vr[j] = gr as f32;
-                    vn[j] = to32(gn);
-                    vv[j] = to32(gv);
-                }
-                acc
-            },
-        )
-        .collect::<Vec<_>>();
-    grads.v_env.resize(texels, [0.0; 3]);
-    store_env_gradient(v_env, &mut grads.v_env);
+    grads.fill(m, env.texels.len(), detach.env, |k, acc| {
+        // No upstream gradient (e.g. a surfel the rasteriser did not reach): every gradient of
+        // the entry is zero.
+        if v_direct[k] == [0.0; 3] && v_indirect[k] == [0.0; 3] {
+            return ([0.0; 3], 0.0, [0.0; 3], [0.0; 3]);
+        }
+        let (ga, gr, gn, gv) = backward_one(
+            inp,
+            lane_env,
+            ids[k] as usize,
+            to64(v_direct[k]),
+            to64(v_indirect[k]),
+            detach,
+            // No gradients to the cache: the per-sample ones are not written.
+            &mut [],
+            &mut [],
+            acc,
+        );
+        (to32(ga), gr as f32, to32(gn), to32(gv))
+    });
     Ok(())
 }
 
@@ -887,15 +903,8 @@ pub(super) mod tests {
         // Inputs are f32 (steps can't be tiny); Richardson-extrapolated central differences.
         // (Steps of 1e-3 left 1.3 % of truncation error in the specular lobe's normal
         // gradient, which the Lambert term's larger gradient had hidden.)
-        let central = |mutate: &dyn Fn(&mut Case, f32), i: usize, eps: f32| {
-            let (mut p, mut m) = (random_case(5, samples, 3), random_case(5, samples, 3));
-            mutate(&mut p, eps);
-            mutate(&mut m, -eps);
-            (obj(&p, &env, i) - obj(&m, &env, i)) / (2.0 * eps as f64)
-        };
-        let fd = |mutate: &dyn Fn(&mut Case, f32), i: usize| {
-            (4.0 * central(mutate, i, 2.5e-4) - central(mutate, i, 5e-4)) / 3.0
-        };
+        let make = || random_case(5, samples, 3);
+        let fd = |mutate: &dyn Fn(&mut Case, f32), i: usize| richardson(&make, &|c| obj(c, &env, i), mutate, 2.5e-4);
         for i in 0..n {
             let f = fd(&|c, e| c.rough[i] += e, i);
             assert!(close(g.v_roughness[i] as f64, f, 2e-3, 1e-4), "v_r[{i}] {} vs {f}", g.v_roughness[i]);
@@ -920,16 +929,38 @@ pub(super) mod tests {
                 }
             }
         }
-        // Env texels: linear, so a unit step is exact; the objective sums over all surfels.
-        let total = |e: &EnvMap| (0..n).map(|i| obj(&case, e, i)).sum::<f64>();
-        let base = total(&env);
+        // The objective sums over all surfels.
+        check_env_gradient(&env, &g.v_env, |e| (0..n).map(|i| obj(&case, e, i)).sum::<f64>());
+    }
+
+    /// Richardson-extrapolated central difference of `obj` at the case `make` gives, under
+    /// `mutate(case, ±step)` and `±2·step`.
+    pub(in crate::shade::pbr) fn richardson(
+        make: &dyn Fn() -> Case,
+        obj: &dyn Fn(&Case) -> f64,
+        mutate: &dyn Fn(&mut Case, f32),
+        step: f32,
+    ) -> f64 {
+        let central = |eps: f32| {
+            let (mut p, mut m) = (make(), make());
+            mutate(&mut p, eps);
+            mutate(&mut m, -eps);
+            (obj(&p) - obj(&m)) / (2.0 * eps as f64)
+        };
+        (4.0 * central(step) - central(2.0 * step)) / 3.0
+    }
+
+    /// `v_env` against unit steps of each texel of `total` (exact: L is linear in the texels),
+    /// and that more than 30 texel channels matter.
+    pub(in crate::shade::pbr) fn check_env_gradient(env: &EnvMap, v_env: &[[f32; 3]], total: impl Fn(&EnvMap) -> f64) {
+        let base = total(env);
         let mut nonzero = 0;
         for t in 0..env.texels.len() {
             for ch in 0..3 {
                 let mut e2 = env.clone();
                 e2.texels[t][ch] += 1.0;
                 let f = total(&e2) - base;
-                assert!(close(g.v_env[t][ch] as f64, f, 1e-3, 1e-5), "v_env[{t}][{ch}] {} vs {f}", g.v_env[t][ch]);
+                assert!(close(v_env[t][ch] as f64, f, 1e-3, 1e-5), "v_env[{t}][{ch}] {} vs {f}", v_env[t][ch]);
                 nonzero += (f.abs() > 1e-6) as usize;
             }
         }

@@ -19,9 +19,7 @@
 //! chained in the backward as in `backward_one`. The upstream gradient of L_direct and
 //! L_indirect must be the same v (the PBR image's path); the general backward stays for the rest.
 
-use super::{
-    CHUNK_SURFELS, LaneEnv, PbrInputs, REDUCE_GROUP, SubsetGrads, lane_sum, load_block, splat, store_env_gradient,
-};
+use super::{EntryGrads, LaneEnv, PbrInputs, SubsetGrads, lane_sum, load_block, splat};
 use crate::envmap::EnvMap;
 use crate::error::{Error, Result};
 use crate::shade::brdf_lanes::{LANES, Lobe};
@@ -171,70 +169,39 @@ pub fn shade_subset_linearised_backward(
     if v_pbr.len() != m || lin.len() != m || lin.samples != s || lin.env_weights.len() != m * s {
         return Err(Error::invalid("PBR upstream gradients", format!("need {m} entries of the forward's shading")));
     }
-    grads.v_albedo.resize(m, [0.0; 3]);
-    grads.v_roughness.resize(m, 0.0);
-    grads.v_normal.resize(m, [0.0; 3]);
-    grads.v_view.resize(m, [0.0; 3]);
-    let texels = env.texels.len();
     let footprints = inp.footprints_for(env);
-    let v_env = grads
-        .v_albedo
-        .par_chunks_mut(CHUNK_SURFELS)
-        .zip(grads.v_roughness.par_chunks_mut(CHUNK_SURFELS))
-        .zip(grads.v_normal.par_chunks_mut(CHUNK_SURFELS))
-        .zip(grads.v_view.par_chunks_mut(CHUNK_SURFELS))
-        .enumerate()
-        // The same fixed groups as the general backward: a deterministic env gradient.
-        .fold_chunks(
-            REDUCE_GROUP,
-            || vec![f32x4::ZERO; texels],
-            |mut acc, (c, (((va, vr), vn), vv))| {
-                for j in 0..va.len() {
-                    let k = c * CHUNK_SURFELS + j;
-                    let v = to64(v_pbr[k]);
-                    if v == [0.0; 3] {
-                        (va[j], vr[j], vn[j], vv[j]) = ([0.0; 3], 0.0, [0.0; 3], [0.0; 3]);
-                        continue;
-                    }
-                    let i = ids[k] as usize;
-                    let lam =
-                        entry_gradients(inp, i, &lin.jacobian[k], v, (&mut va[j], &mut vr[j], &mut vn[j], &mut vv[j]));
-                    // The env texels: v[ch]·(lam[ch]·wv + wvs) through each sample's bilinear taps.
-                    let vl = f32x4::from([(v[0] * lam[0]) as f32, (v[1] * lam[1]) as f32, (v[2] * lam[2]) as f32, 0.0]);
-                    let v4 = f32x4::from([v[0] as f32, v[1] as f32, v[2] as f32, 0.0]);
-                    for (q, &[wv, wvs]) in lin.env_weights[k * s..(k + 1) * s].iter().enumerate() {
-                        if wv == 0.0 {
-                            continue;
-                        }
-                        let at = i * s + q;
-                        let fp = match footprints {
-                            Some(f) => env.unpack(f[at]),
-                            None => env.footprint(inp.dirs[at]),
-                        };
-                        let g = vl * f32x4::splat(wv) + v4 * f32x4::splat(wvs);
-                        for t in 0..4 {
-                            acc[fp.index[t]] += g * f32x4::splat(fp.weight[t]);
-                        }
-                    }
-                }
-                acc
-            },
-        )
-        .collect::<Vec<_>>();
-    grads.v_env.resize(texels, [0.0; 3]);
-    store_env_gradient(v_env, &mut grads.v_env);
+    grads.fill(m, env.texels.len(), false, |k, acc| {
+        let v = to64(v_pbr[k]);
+        if v == [0.0; 3] {
+            return ([0.0; 3], 0.0, [0.0; 3], [0.0; 3]);
+        }
+        let i = ids[k] as usize;
+        let (grad, lam) = entry_gradients(inp, i, &lin.jacobian[k], v);
+        // The env texels: v[ch]·(lam[ch]·wv + wvs) through each sample's bilinear taps.
+        let vl = f32x4::from([(v[0] * lam[0]) as f32, (v[1] * lam[1]) as f32, (v[2] * lam[2]) as f32, 0.0]);
+        let v4 = f32x4::from([v[0] as f32, v[1] as f32, v[2] as f32, 0.0]);
+        for (q, &[wv, wvs]) in lin.env_weights[k * s..(k + 1) * s].iter().enumerate() {
+            if wv == 0.0 {
+                continue;
+            }
+            let at = i * s + q;
+            let fp = match footprints {
+                Some(f) => env.unpack(f[at]),
+                None => env.footprint(inp.dirs[at]),
+            };
+            let g = vl * f32x4::splat(wv) + v4 * f32x4::splat(wvs);
+            for t in 0..4 {
+                acc[fp.index[t]] += g * f32x4::splat(fp.weight[t]);
+            }
+        }
+        grad
+    });
     Ok(())
 }
 
-/// One entry's albedo, roughness, normal and view gradients from its sums; returns the
-/// Lambert weight lam = a·kd/π (per channel) for the env's gradient.
-fn entry_gradients(
-    inp: &PbrInputs,
-    i: usize,
-    jac: &[f64; JACOBIAN],
-    v: V3,
-    (va, vr, vn, vv): (&mut [f32; 3], &mut f32, &mut [f32; 3], &mut [f32; 3]),
-) -> V3 {
+/// One entry's albedo, roughness, normal and view gradients from its sums, and the Lambert
+/// weight lam = a·kd/π (per channel) for the env's gradient.
+fn entry_gradients(inp: &PbrInputs, i: usize, jac: &[f64; JACOBIAN], v: V3) -> (EntryGrads, V3) {
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
     let (kd, dkd_dnov, dkd_dr) = if inp.lambert { brdf::diffuse_weight(dot(n, wo), r) } else { (0.0, 0.0, 0.0) };
     let inv_pi = std::f64::consts::FRAC_1_PI;
@@ -242,16 +209,16 @@ fn entry_gradients(
     let v_lambert: V3 = std::array::from_fn(|ch| v[ch] * jac[J_E + ch]);
     let row = |at: usize| v[0] * jac[at] + v[1] * jac[at + 1] + v[2] * jac[at + 2];
     let v_kd = dot(v_lambert, a) * inv_pi;
-    *va = to32(scale(v_lambert, kd * inv_pi));
-    *vr = (row(J_R) + v_kd * dkd_dr) as f32;
-    *vn = to32(std::array::from_fn(|c| row(J_N + 3 * c) + wo[c] * v_kd * dkd_dnov));
-    *vv = to32(std::array::from_fn(|c| row(J_WO + 3 * c) + n[c] * v_kd * dkd_dnov));
-    scale(a, kd * inv_pi)
+    let va = to32(scale(v_lambert, kd * inv_pi));
+    let vr = (row(J_R) + v_kd * dkd_dr) as f32;
+    let vn = to32(std::array::from_fn(|c| row(J_N + 3 * c) + wo[c] * v_kd * dkd_dnov));
+    let vv = to32(std::array::from_fn(|c| row(J_WO + 3 * c) + n[c] * v_kd * dkd_dnov));
+    ((va, vr, vn, vv), scale(a, kd * inv_pi))
 }
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::{Case, random_case, random_env};
+    use super::super::tests::{Case, check_env_gradient, random_case, random_env, richardson};
     use super::super::{CachedFootprints, Detach, shade_one, shade_subset, shade_subset_backward};
     use super::*;
     use crate::envmap::PackedFootprint;
@@ -372,15 +339,7 @@ mod tests {
                 dot(add(dd, ii), to64(v[i]))
             };
             // Richardson-extrapolated central differences of f32 inputs.
-            let central = |mutate: &dyn Fn(&mut Case, f32), i: usize, eps: f32| {
-                let (mut p, mut m) = (make(), make());
-                mutate(&mut p, eps);
-                mutate(&mut m, -eps);
-                (obj(&p, &env, i) - obj(&m, &env, i)) / (2.0 * eps as f64)
-            };
-            let fd = |mutate: &dyn Fn(&mut Case, f32), i: usize| {
-                (4.0 * central(mutate, i, 1e-4) - central(mutate, i, 2e-4)) / 3.0
-            };
+            let fd = |mutate: &dyn Fn(&mut Case, f32), i: usize| richardson(&make, &|c| obj(c, &env, i), mutate, 1e-4);
             // Surfels 0 and 1 view at grazing angles: steps must not cross n·ω_o = 0 (a kink).
             for i in 0..n {
                 let f = fd(&|c, e| c.rough[i] += e, i);
@@ -398,20 +357,7 @@ mod tests {
                     assert!(close(g.v_view[i][ch] as f64, f, 1e-2, 2e-3), "v_wo[{i}][{ch}] {} vs {f}", g.v_view[i][ch]);
                 }
             }
-            // Env texels: linear, so a unit step is exact.
-            let total = |e: &EnvMap| (0..n).map(|i| obj(&case, e, i)).sum::<f64>();
-            let base = total(&env);
-            let mut nonzero = 0;
-            for t in 0..env.texels.len() {
-                for ch in 0..3 {
-                    let mut e2 = env.clone();
-                    e2.texels[t][ch] += 1.0;
-                    let f = total(&e2) - base;
-                    assert!(close(g.v_env[t][ch] as f64, f, 1e-3, 1e-5), "v_env[{t}][{ch}] {} vs {f}", g.v_env[t][ch]);
-                    nonzero += (f.abs() > 1e-6) as usize;
-                }
-            }
-            assert!(nonzero > 30);
+            check_env_gradient(&env, &g.v_env, |e| (0..n).map(|i| obj(&case, e, i)).sum::<f64>());
         }
     }
 

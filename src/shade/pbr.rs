@@ -647,6 +647,18 @@ pub(super) mod tests {
     }
 
     impl Case {
+        /// [`inputs`](Self::inputs) with `packed` (the footprints of `dirs` for maps of
+        /// `env`'s size) as cached footprints when `cached`.
+        pub(in crate::shade::pbr) fn inputs_cached<'a>(
+            &'a self,
+            packed: &'a [PackedFootprint],
+            env: &EnvMap,
+            cached: bool,
+        ) -> PbrInputs<'a> {
+            let footprints = cached.then_some(CachedFootprints { data: packed, width: env.width, height: env.height });
+            PbrInputs { footprints, ..self.inputs() }
+        }
+
         pub(in crate::shade::pbr) fn inputs(&self) -> PbrInputs<'_> {
             PbrInputs {
                 albedo: &self.albedo,
@@ -764,14 +776,7 @@ pub(super) mod tests {
             let case = random_case(6, s, 30 + s as u64);
             let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
             for cached in [false, true] {
-                let inp = PbrInputs {
-                    footprints: cached.then_some(CachedFootprints {
-                        data: &packed,
-                        width: env.width,
-                        height: env.height,
-                    }),
-                    ..case.inputs()
-                };
+                let inp = case.inputs_cached(&packed, &env, cached);
                 for i in 0..6 {
                     let (direct, indirect) = shade_one(&inp, &LaneEnv::new(&env), i);
                     let (a, r, n, wo) =
@@ -905,19 +910,11 @@ pub(super) mod tests {
         // gradient, which the Lambert term's larger gradient had hidden.)
         let make = || random_case(5, samples, 3);
         let fd = |mutate: &dyn Fn(&mut Case, f32), i: usize| richardson(&make, &|c| obj(c, &env, i), mutate, 2.5e-4);
+        let grads = (&g.v_albedo[..], &g.v_roughness[..], &g.v_normal[..], &g.v_view[..]);
         for i in 0..n {
-            let f = fd(&|c, e| c.rough[i] += e, i);
-            assert!(close(g.v_roughness[i] as f64, f, 2e-3, 1e-4), "v_r[{i}] {} vs {f}", g.v_roughness[i]);
-            for ch in 0..3 {
-                let f = fd(&|c, e| c.albedo[i][ch] += e, i);
-                assert!(close(g.v_albedo[i][ch] as f64, f, 1e-3, 1e-5), "v_a");
-                if !lambert {
-                    assert_eq!(g.v_albedo[i][ch], 0.0);
-                }
-                let f = fd(&|c, e| c.normal[i][ch] += e, i);
-                assert!(close(g.v_normal[i][ch] as f64, f, 5e-3, 1e-3), "v_n[{i}][{ch}] {} vs {f}", g.v_normal[i][ch]);
-                let f = fd(&|c, e| c.view[i][ch] += e, i);
-                assert!(close(g.v_view[i][ch] as f64, f, 5e-3, 1e-3), "v_wo[{i}][{ch}] {} vs {f}", g.v_view[i][ch]);
+            check_material_gradients(i, grads, &fd, (5e-3, 1e-3));
+            if !lambert {
+                assert_eq!(g.v_albedo[i], [0.0; 3]);
             }
             for j in 0..case.s {
                 let k = i * case.s + j;
@@ -931,6 +928,27 @@ pub(super) mod tests {
         }
         // The objective sums over all surfels.
         check_env_gradient(&env, &g.v_env, |e| (0..n).map(|i| obj(&case, e, i)).sum::<f64>());
+    }
+
+    /// Surfel i's albedo, roughness, normal and view gradients against `fd(mutate, i)`; the
+    /// normal's and view's (rel, abs) tolerance given.
+    #[allow(clippy::type_complexity)]
+    pub(in crate::shade::pbr) fn check_material_gradients(
+        i: usize,
+        (v_albedo, v_roughness, v_normal, v_view): (&[[f32; 3]], &[f32], &[[f32; 3]], &[[f32; 3]]),
+        fd: &dyn Fn(&dyn Fn(&mut Case, f32), usize) -> f64,
+        (rel, abs): (f64, f64),
+    ) {
+        let f = fd(&|c, e| c.rough[i] += e, i);
+        assert!(close(v_roughness[i] as f64, f, 2e-3, 1e-4), "v_r[{i}] {} vs {f}", v_roughness[i]);
+        for ch in 0..3 {
+            let f = fd(&|c, e| c.albedo[i][ch] += e, i);
+            assert!(close(v_albedo[i][ch] as f64, f, 1e-3, 1e-5), "v_a[{i}][{ch}] {} vs {f}", v_albedo[i][ch]);
+            let f = fd(&|c, e| c.normal[i][ch] += e, i);
+            assert!(close(v_normal[i][ch] as f64, f, rel, abs), "v_n[{i}][{ch}] {} vs {f}", v_normal[i][ch]);
+            let f = fd(&|c, e| c.view[i][ch] += e, i);
+            assert!(close(v_view[i][ch] as f64, f, rel, abs), "v_wo[{i}][{ch}] {} vs {f}", v_view[i][ch]);
+        }
     }
 
     /// Richardson-extrapolated central difference of `obj` at the case `make` gives, under
@@ -1167,10 +1185,7 @@ pub(super) mod tests {
         // The training path: footprints of the cached directions made once per cache refresh.
         let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
         for cached in [false, true] {
-            let inputs = PbrInputs {
-                footprints: cached.then_some(CachedFootprints { data: &packed, width: env.width, height: env.height }),
-                ..case.inputs()
-            };
+            let inputs = case.inputs_cached(&packed, &env, cached);
             let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
             let mut g = PbrGrads::new(n, s, env.texels.len());
             let v = vec![[1.0f32; 3]; n];

@@ -218,8 +218,10 @@ fn entry_gradients(inp: &PbrInputs, i: usize, jac: &[f64; JACOBIAN], v: V3) -> (
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::{Case, check_env_gradient, random_case, random_env, richardson};
-    use super::super::{CachedFootprints, Detach, shade_one, shade_subset, shade_subset_backward};
+    use super::super::tests::{
+        Case, check_env_gradient, check_material_gradients, random_case, random_env, richardson,
+    };
+    use super::super::{Detach, shade_one, shade_subset, shade_subset_backward};
     use super::*;
     use crate::envmap::PackedFootprint;
     use crate::shade::testutil::{close, rng};
@@ -258,14 +260,7 @@ mod tests {
                     ids.iter().map(|_| [rg.random_range(-1.0..1.0), rg.random_range(-1.0..1.0), rg.random()]).collect();
                 v[5] = [0.0; 3];
                 for cached in [false, true] {
-                    let inp = PbrInputs {
-                        footprints: cached.then_some(CachedFootprints {
-                            data: &packed,
-                            width: env.width,
-                            height: env.height,
-                        }),
-                        ..case.inputs()
-                    };
+                    let inp = case.inputs_cached(&packed, &env, cached);
                     let m = ids.len();
                     let (mut d, mut ind) = (vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
                     let (mut d2, mut ind2) = (vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
@@ -341,21 +336,9 @@ mod tests {
             // Richardson-extrapolated central differences of f32 inputs.
             let fd = |mutate: &dyn Fn(&mut Case, f32), i: usize| richardson(&make, &|c| obj(c, &env, i), mutate, 1e-4);
             // Surfels 0 and 1 view at grazing angles: steps must not cross n·ω_o = 0 (a kink).
+            let grads = (&g.v_albedo[..], &g.v_roughness[..], &g.v_normal[..], &g.v_view[..]);
             for i in 0..n {
-                let f = fd(&|c, e| c.rough[i] += e, i);
-                assert!(close(g.v_roughness[i] as f64, f, 2e-3, 1e-4), "v_r[{i}] {} vs {f}", g.v_roughness[i]);
-                for ch in 0..3 {
-                    let f = fd(&|c, e| c.albedo[i][ch] += e, i);
-                    assert!(close(g.v_albedo[i][ch] as f64, f, 1e-3, 1e-5), "v_a[{i}]");
-                    let f = fd(&|c, e| c.normal[i][ch] += e, i);
-                    assert!(
-                        close(g.v_normal[i][ch] as f64, f, 1e-2, 2e-3),
-                        "v_n[{i}][{ch}] {} vs {f}",
-                        g.v_normal[i][ch]
-                    );
-                    let f = fd(&|c, e| c.view[i][ch] += e, i);
-                    assert!(close(g.v_view[i][ch] as f64, f, 1e-2, 2e-3), "v_wo[{i}][{ch}] {} vs {f}", g.v_view[i][ch]);
-                }
+                check_material_gradients(i, grads, &fd, (1e-2, 2e-3));
             }
             check_env_gradient(&env, &g.v_env, |e| (0..n).map(|i| obj(&case, e, i)).sum::<f64>());
         }

@@ -344,6 +344,28 @@ mod tests {
         }
     }
 
+    /// The linearised forward alone, repeated, for a profiler (`perf record` on `cargo test
+    /// --release --lib linearised::tests::forward_for_profiling -- --ignored --nocapture`): 50k
+    /// surfels × 64 samples with cached footprints, the training iteration's shape.
+    #[test]
+    #[ignore]
+    fn forward_for_profiling() {
+        let env = random_env(64, 128, 11);
+        let (n, s) = (50_000, 64);
+        let case = random_case(n, s, 12);
+        let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
+        let inputs = case.inputs_cached(&packed, &env, true);
+        let ids: Vec<u32> = (0..n as u32).collect();
+        let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
+        let mut lin = LinearisedShading::default();
+        let reps = 40;
+        let t0 = std::time::Instant::now();
+        for _ in 0..reps {
+            shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+        }
+        println!("linearised forward: {:.1} ms", t0.elapsed().as_secs_f64() / reps as f64 * 1e3);
+    }
+
     #[test]
     fn rejects_a_backward_of_another_shading() {
         let env = random_env(8, 16, 1);

@@ -217,26 +217,12 @@ fn load_block(
     n: V3,
     k0: usize,
     len: usize,
-    fps: Option<&mut [Footprint; LANES]>,
-) -> Block {
-    if len == LANES {
-        load_full_block(inp, env, footprints, n, k0, fps)
-    } else {
-        load_lanes(inp, env, footprints, n, k0, len, fps)
-    }
-}
-
-/// [`load_block`] lane by lane (any `len`; partial blocks take this path).
-#[inline]
-fn load_lanes(
-    inp: &PbrInputs,
-    env: &LaneEnv,
-    footprints: Option<&[PackedFootprint]>,
-    n: V3,
-    k0: usize,
-    len: usize,
     mut fps: Option<&mut [Footprint; LANES]>,
 ) -> Block {
+    if len == LANES {
+        return load_full_block(inp, env, footprints, n, k0, fps);
+    }
+    // A partial block, lane by lane.
     let mut d = [[0.0f64; LANES]; 3];
     let mut w = [0.0f64; LANES];
     let mut vis = [0.0f64; LANES];
@@ -290,8 +276,8 @@ fn load_lanes(
 
 /// [`load_block`] for a whole block (the training's S = 64 has only these), without a branch
 /// per lane: every lane is gathered and looked up in the env, then the lanes under the horizon
-/// are zeroed by mask, the same values as [`load_lanes`] (which took ≈ 40 % of the linearised
-/// forward; this path: −12 % of it, −23 % of the general forward, −13 % of the general
+/// are zeroed by mask, the same values as the lane-by-lane path (which took ≈ 40 % of the
+/// linearised forward; this path: −12 % of it, −23 % of the general forward, −13 % of the general
 /// backward on the AVX2 VM, BENCHMARKS.md session 88). Footprints are written only when asked:
 /// copying each lane's footprint to a local array stalled on store forwarding and ate the gain.
 #[inline]
@@ -1255,11 +1241,12 @@ pub(super) mod tests {
         assert!(out.iter().all(|x| *x == [0.0; 3]));
     }
 
-    /// A whole block loads as lane by lane, bit for bit: directions, weights, cosines,
-    /// visibility, env and indirect radiance, live lanes and footprints, with lanes under the
-    /// horizon, per-sample weights, cached footprints or not.
+    /// Blocks, whole and partial, against a lane-by-lane reference written here from the
+    /// definitions (`EnvMap::lookup`, the horizon test, zero on dead lanes), bit for bit:
+    /// directions, weights, cosines, visibility, env and indirect radiance, live lanes and
+    /// footprints, with lanes under the horizon, per-sample weights, cached footprints or not.
     #[test]
-    fn whole_blocks_load_as_lane_by_lane() {
+    fn blocks_load_as_the_lane_by_lane_definition() {
         let env = random_env(16, 32, 3);
         let lane_env = LaneEnv::new(&env);
         let s = 16;
@@ -1273,40 +1260,67 @@ pub(super) mod tests {
         let mut rg = rng(5);
         let weights: Vec<f32> = (0..6 * s).map(|_| rg.random_range(0.1..2.0)).collect();
         let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
-        let mut dead = 0;
+        let (mut dead, mut blocks) = (0, 0);
         for weighted in [false, true] {
             case.sample_weights = weighted.then(|| weights.clone());
             for cached in [false, true] {
                 let inp = case.inputs_cached(&packed, &env, cached);
-                let footprints = inp.footprints_for(&env);
                 for i in 0..6 {
                     let n = to64(inp.normal[i]);
-                    for k0 in [i * s, i * s + LANES] {
+                    // Whole blocks (the SIMD path) and partial ones (lane by lane).
+                    for (k0, len) in [(i * s, LANES), (i * s + LANES, LANES), (i * s + 2, 5), (i * s + 9, 3)] {
                         let empty = Footprint { index: [0; 4], weight: [0.0; 4] };
-                        let (mut fa, mut fb) = ([empty; LANES], [empty; LANES]);
-                        let a = load_full_block(&inp, &lane_env, footprints, n, k0, Some(&mut fa));
-                        let b = load_lanes(&inp, &lane_env, footprints, n, k0, LANES, Some(&mut fb));
-                        let bits = |x: f64x8| x.to_array().map(f64::to_bits);
-                        for c in 0..3 {
-                            assert_eq!(bits(a.dirs[c]), bits(b.dirs[c]), "dirs {i} {k0}");
-                            assert_eq!(bits(a.le[c]), bits(b.le[c]), "le {i} {k0}");
-                            assert_eq!(bits(a.li[c]), bits(b.li[c]), "li {i} {k0}");
+                        let mut fps = [empty; LANES];
+                        let b = load_block(&inp, &lane_env, inp.footprints_for(&env), n, k0, len, Some(&mut fps));
+                        let lane = |x: f64x8, j: usize| x.to_array()[j].to_bits();
+                        for j in 0..LANES {
+                            let k = k0 + j;
+                            let dk = if j < len { to64(inp.dirs[k]) } else { [0.0; 3] };
+                            let live = j < len && n[0] * dk[0] + n[1] * dk[1] + n[2] * dk[2] > 0.0;
+                            let dir = if live { dk } else { n };
+                            let w = match (live, weighted) {
+                                (false, _) => 0.0,
+                                (true, true) => weights[k] as f64,
+                                (true, false) => inp.weight as f64,
+                            };
+                            let le = if live { env.lookup(inp.dirs[k]) } else { [0.0; 3] };
+                            let li = if live { inp.indirect[k] } else { [0.0; 3] };
+                            let vis = if live { inp.visibility[k] as f64 } else { 0.0 };
+                            assert_eq!(b.live[j], live, "live {i} {k0} {j}");
+                            for c in 0..3 {
+                                assert_eq!(lane(b.dirs[c], j), dir[c].to_bits(), "dir {i} {k0} {j}");
+                                assert_eq!(lane(b.le[c], j), (le[c] as f64).to_bits(), "le {i} {k0} {j}");
+                                assert_eq!(lane(b.li[c], j), (li[c] as f64).to_bits(), "li {i} {k0} {j}");
+                            }
+                            let cos = n[0] * dir[0] + n[1] * dir[1] + n[2] * dir[2];
+                            assert_eq!(lane(b.w, j), w.to_bits(), "w {i} {k0} {j}");
+                            assert_eq!(lane(b.wc, j), (w * cos).to_bits(), "wc {i} {k0} {j}");
+                            assert_eq!(lane(b.vis, j), vis.to_bits(), "vis {i} {k0} {j}");
+                            if live {
+                                let want = env.footprint(inp.dirs[k]);
+                                assert_eq!((fps[j].index, fps[j].weight), (want.index, want.weight));
+                            }
+                            dead += usize::from(j < len && !live);
                         }
-                        assert_eq!(bits(a.w), bits(b.w));
-                        assert_eq!(bits(a.wc), bits(b.wc));
-                        assert_eq!(bits(a.vis), bits(b.vis));
-                        assert_eq!(a.live, b.live);
-                        for j in (0..LANES).filter(|&j| b.live[j]) {
-                            assert_eq!((fa[j].index, fa[j].weight), (fb[j].index, fb[j].weight));
-                        }
-                        dead += b.live.iter().filter(|l| !**l).count();
+                        blocks += 1;
                     }
                 }
             }
         }
-        // Three flipped directions and dirs[1] (under surfel 0's horizon), in each of 4 passes;
-        // the tangent one may round either way.
+        assert_eq!(blocks, 4 * 6 * 4);
+        // dirs[1] (under surfel 0's horizon) and the three flipped ones, in each of 4 passes, in
+        // whole blocks and again in the partial ones that cover them; the tangent may round
+        // either way.
         assert!(dead >= 16, "{dead}");
+    }
+
+    /// The shading benchmarks' case: 50k surfels × 64 samples under a 64 × 128 map, and the
+    /// footprints of the cached directions (the training path makes them once per cache refresh).
+    pub(in crate::shade::pbr) fn benchmark_case() -> (EnvMap, Case, Vec<PackedFootprint>) {
+        let env = random_env(64, 128, 11);
+        let case = random_case(50_000, 64, 12);
+        let packed = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
+        (env, case, packed)
     }
 
     /// Throughput for BENCHMARKS-shade.md: `cargo test --release --lib
@@ -1314,11 +1328,8 @@ pub(super) mod tests {
     #[test]
     #[ignore]
     fn throughput() {
-        let env = random_env(64, 128, 11);
-        let (n, s) = (50_000, 64);
-        let case = random_case(n, s, 12);
-        // The training path: footprints of the cached directions made once per cache refresh.
-        let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
+        let (env, case, packed) = benchmark_case();
+        let (n, s) = (case.albedo.len(), case.s);
         for cached in [false, true] {
             let inputs = case.inputs_cached(&packed, &env, cached);
             let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);

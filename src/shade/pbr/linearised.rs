@@ -219,7 +219,7 @@ fn entry_gradients(inp: &PbrInputs, i: usize, jac: &[f64; JACOBIAN], v: V3) -> (
 #[cfg(test)]
 mod tests {
     use super::super::tests::{
-        Case, check_env_gradient, check_material_gradients, random_case, random_env, richardson,
+        Case, benchmark_case, check_env_gradient, check_material_gradients, random_case, random_env, richardson,
     };
     use super::super::{Detach, shade_one, shade_subset, shade_subset_backward};
     use super::*;
@@ -350,10 +350,8 @@ mod tests {
     #[test]
     #[ignore]
     fn forward_for_profiling() {
-        let env = random_env(64, 128, 11);
-        let (n, s) = (50_000, 64);
-        let case = random_case(n, s, 12);
-        let packed: Vec<PackedFootprint> = case.dirs.iter().map(|d| env.packed_footprint(*d)).collect();
+        let (env, case, packed) = benchmark_case();
+        let n = case.albedo.len();
         let inputs = case.inputs_cached(&packed, &env, true);
         let ids: Vec<u32> = (0..n as u32).collect();
         let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);

@@ -281,8 +281,8 @@ mod tests {
     /// Every lane equals the scalar lobe and its backward to rounding (the lanes share
     /// reciprocals the scalar code divides by separately), on random cases and on the edge cases
     /// of the scalar tests (grazing, below the horizon, mirror, tiny roughness, ω_i = −ω_o).
-    /// The tolerance is relative to each quantity's own scale: a gradient's components to the
-    /// largest of them and |v|·spec-sized terms.
+    /// The tolerance is relative to each quantity's own scale: the lobe and the roughness
+    /// gradient to their magnitude, a gradient vector's components to its largest component.
     #[test]
     fn lanes_are_the_scalar_lobe() {
         let mut g = rng(41);

@@ -277,7 +277,7 @@ fn load_block(
 /// [`load_block`] for a whole block (the training's S = 64 has only these), without a branch
 /// per lane: every lane is gathered and looked up in the env, then the lanes under the horizon
 /// are zeroed by mask, the same values as the lane-by-lane path (which took ≈ 40 % of the
-/// linearised forward; this path: −12 % of it, −23 % of the general forward, −13 % of the general
+/// linearised forward; this path: −14 % of it, −23 % of the general forward, −13 % of the general
 /// backward on the AVX2 VM, BENCHMARKS.md session 88). Footprints are written only when asked:
 /// copying each lane's footprint to a local array stalled on store forwarding and ate the gain.
 #[inline]
@@ -302,6 +302,8 @@ fn load_full_block(
     let ind: &[[f32; 3]; LANES] = inp.indirect[range].try_into().expect("a whole block");
     let li: [f64x8; 3] = std::array::from_fn(|ch| f64x8::from(ind.map(|x| x[ch] as f64)));
     let mut le = [[0.0f32; LANES]; 3];
+    // The lookup is written out here, not shared with the partial path: a shared inline helper
+    // returning (footprint, colour) measured slower in the linearised forward (BENCHMARKS.md).
     for j in 0..LANES {
         let fp = match footprints {
             Some(f) => env.env.unpack(f[k0 + j]),

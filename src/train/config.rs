@@ -279,7 +279,7 @@ pub struct TrainConfig {
     #[arg(long, default_value_t = 200)]
     pub cache_every: u32,
     /// Radiometric consistency: surfels per iteration [2048]. 256 halves the consistency step's
-    /// time (the inverse stage 8–13 % faster) but cost 0.1–0.2 dB of relighting on both shared
+    /// time (the inverse stage 8–12 % faster) but costs 0.1–0.2 dB of relighting on both shared
     /// scenes and of albedo on both cornells (BENCHMARKS.md, session 89).
     #[arg(long, default_value_t = 512)]
     pub rc_surfels: usize,

@@ -5,11 +5,14 @@
 //! (ω_o towards the camera, ω_i / ω_s towards the light); vectors are used as given (no
 //! renormalisation inside), so gradients are with respect to the vectors as passed in and the
 //! caller chains any normalisation. The scalar maths runs in f64 (it costs the same as f32
-//! for scalar code and lets the gradient checks run tight); storage stays f32.
+//! for scalar code and lets the gradient checks run tight); storage stays f32. SIMD lanes are
+//! f64 too, but for the inverse iteration's linearised PBR shading, whose f32 lanes
+//! (`float_lanes.rs`) halve its time and are bounded against the f64 ones by a test.
 
 pub mod brdf;
 pub mod brdf_lanes;
 pub mod env_sampling;
+pub mod float_lanes;
 pub mod incident;
 pub mod pbr;
 pub mod sampling;

@@ -11,9 +11,11 @@
 //! per-surfel cache or the tracer's output): the gradient to n does not move the directions.
 //!
 //! Parallel decomposition: rayon over chunks of surfels; each surfel's S samples run in blocks
-//! of eight f64 lanes (no allocation): the per-sample inputs and env lookups are gathered per
+//! of eight lanes (no allocation): the per-sample inputs and env lookups are gathered per
 //! lane (`load_block`), the specular lobe (`brdf_lanes::Lobe`, the scalar lobe to rounding), the
 //! products and the sums run in SIMD, and the lane sums are added in lane order at the end. The
+//! lanes here are f64; the blocks and the lobe are generic over the lane type
+//! ([`FloatLanes`]) because the inverse iteration's linearised shading runs them in f32. The
 //! backward recomputes the forward terms (nothing saved) and accumulates the env-texel gradient
 //! in one buffer per rayon job, summed at the end. The inverse iteration's PBR image uses the
 //! linearised pair instead ([`linearised`]: the forward keeps each entry's Jacobian, so its
@@ -21,6 +23,7 @@
 //! backward stays for the consistency (gradients to the traced samples) and as its reference.
 
 use super::brdf_lanes::{LANES, Lobe};
+use super::float_lanes::FloatLanes;
 use super::{V3, add, brdf, dot, scale, to32, to64};
 use crate::envmap::{EnvMap, Footprint, PackedFootprint};
 use crate::error::{Error, Result};
@@ -194,23 +197,23 @@ fn lane_sum(x: f64x8) -> f64 {
 /// Samples k0..k0 + len of one surfel in lanes. Lanes that do not contribute (past `len`, or
 /// under the horizon: n·ω ≤ 0) have zero weight and radiance and the direction n (harmless in
 /// the lobe), so every sum over lanes is the sum over the live samples.
-struct Block {
-    dirs: [f64x8; 3],
+struct Block<L: FloatLanes> {
+    dirs: [L; 3],
     /// Sample weight (0 on dead lanes).
-    w: f64x8,
+    w: L,
     /// w · n·ω (0 on dead lanes).
-    wc: f64x8,
-    /// Visibility, env radiance (bilinear, f64) and cached indirect radiance of each sample.
-    vis: f64x8,
-    le: [f64x8; 3],
-    li: [f64x8; 3],
+    wc: L,
+    /// Visibility, env radiance (bilinear in f32) and cached indirect radiance of each sample.
+    vis: L,
+    le: [L; 3],
+    li: [L; 3],
     live: [bool; LANES],
 }
 
 /// Gathers a block: the directions, their cosines, and for the live lanes the env lookup
 /// (its footprint written to `fps` when given, for the backward's scatter).
 #[inline]
-fn load_block(
+fn load_block<L: FloatLanes>(
     inp: &PbrInputs,
     env: &LaneEnv,
     footprints: Option<&[PackedFootprint]>,
@@ -218,7 +221,7 @@ fn load_block(
     k0: usize,
     len: usize,
     mut fps: Option<&mut [Footprint; LANES]>,
-) -> Block {
+) -> Block<L> {
     if len == LANES {
         return load_full_block(inp, env, footprints, n, k0, fps);
     }
@@ -268,10 +271,10 @@ fn load_block(
             f[j] = fp;
         }
     }
-    let dirs = d.map(f64x8::from);
-    let w = f64x8::from(w);
-    let cos = dirs[0] * splat(n[0]) + dirs[1] * splat(n[1]) + dirs[2] * splat(n[2]);
-    Block { dirs, w, wc: w * cos, vis: f64x8::from(vis), le: le.map(f64x8::from), li: li.map(f64x8::from), live }
+    let dirs = d.map(L::from_f64s);
+    let w = L::from_f64s(w);
+    let cos = dirs[0] * L::splat(n[0]) + dirs[1] * L::splat(n[1]) + dirs[2] * L::splat(n[2]);
+    Block { dirs, w, wc: w * cos, vis: L::from_f64s(vis), le: le.map(L::from_f64s), li: li.map(L::from_f64s), live }
 }
 
 /// [`load_block`] for a whole block (the training's S = 64 has only these), without a branch
@@ -281,26 +284,27 @@ fn load_block(
 /// backward on the AVX2 VM, BENCHMARKS.md session 88). Footprints are written only when asked:
 /// copying each lane's footprint to a local array stalled on store forwarding and ate the gain.
 #[inline]
-fn load_full_block(
+fn load_full_block<L: FloatLanes>(
     inp: &PbrInputs,
     env: &LaneEnv,
     footprints: Option<&[PackedFootprint]>,
     n: V3,
     k0: usize,
     mut fps: Option<&mut [Footprint; LANES]>,
-) -> Block {
+) -> Block<L> {
     let range = k0..k0 + LANES;
     let dk: &[[f32; 3]; LANES] = inp.dirs[range.clone()].try_into().expect("a whole block");
-    let d: [f64x8; 3] = std::array::from_fn(|a| f64x8::from(dk.map(|x| x[a] as f64)));
-    let cos = d[0] * splat(n[0]) + d[1] * splat(n[1]) + d[2] * splat(n[2]);
-    let live = cos.simd_gt(f64x8::ZERO);
+    let d: [L; 3] = std::array::from_fn(|a| L::from_f32s(dk.map(|x| x[a])));
+    let nl = n.map(L::splat);
+    let cos = d[0] * nl[0] + d[1] * nl[1] + d[2] * nl[2];
+    let live = cos.gt(L::ZERO);
     let w = match inp.sample_weights {
-        Some(sw) => f64x8::from(std::array::from_fn::<f64, LANES, _>(|j| sw[k0 + j] as f64)),
-        None => splat(inp.weight as f64),
+        Some(sw) => L::from_f32s(std::array::from_fn(|j| sw[k0 + j])),
+        None => L::splat(inp.weight as f64),
     };
     let vis: &[f32; LANES] = inp.visibility[range.clone()].try_into().expect("a whole block");
     let ind: &[[f32; 3]; LANES] = inp.indirect[range].try_into().expect("a whole block");
-    let li: [f64x8; 3] = std::array::from_fn(|ch| f64x8::from(ind.map(|x| x[ch] as f64)));
+    let li: [L; 3] = std::array::from_fn(|ch| L::from_f32s(ind.map(|x| x[ch])));
     let mut le = [[0.0f32; LANES]; 3];
     // The lookup is written out here, not shared with the partial path: a shared inline helper
     // returning (footprint, colour) measured slower in the linearised forward (BENCHMARKS.md).
@@ -322,18 +326,18 @@ fn load_full_block(
             f[j] = fp;
         }
     }
-    let zero = f64x8::ZERO;
-    let dirs: [f64x8; 3] = std::array::from_fn(|a| live.select(d[a], splat(n[a])));
+    let zero = L::ZERO;
+    let dirs: [L; 3] = std::array::from_fn(|a| live.select(d[a], nl[a]));
     let w = live.select(w, zero);
     // n·ω of the dead lanes' direction n, as the lane-by-lane path computes it (times w = 0).
-    let cos = dirs[0] * splat(n[0]) + dirs[1] * splat(n[1]) + dirs[2] * splat(n[2]);
-    let mask = live.to_bitmask();
+    let cos = dirs[0] * nl[0] + dirs[1] * nl[1] + dirs[2] * nl[2];
+    let mask = live.bitmask();
     Block {
         dirs,
         w,
         wc: w * cos,
-        vis: live.select(f64x8::from(vis.map(|x| x as f64)), zero),
-        le: le.map(|c| live.select(f64x8::from(c.map(|x| x as f64)), zero)),
+        vis: live.select(L::from_f32s(*vis), zero),
+        le: le.map(|c| live.select(L::from_f32s(c), zero)),
         li: li.map(|c| live.select(c, zero)),
         live: std::array::from_fn(|j| mask >> j & 1 == 1),
     }

@@ -19,13 +19,14 @@
 //! chained in the backward as in `backward_one`. The upstream gradient of L_direct and
 //! L_indirect must be the same v (the PBR image's path); the general backward stays for the rest.
 
-use super::{EntryGrads, LaneEnv, PbrInputs, SubsetGrads, lane_sum, load_block, splat};
+use super::{EntryGrads, LaneEnv, PbrInputs, SubsetGrads, load_block};
 use crate::envmap::EnvMap;
 use crate::error::{Error, Result};
 use crate::shade::brdf_lanes::{LANES, Lobe};
+use crate::shade::float_lanes::FloatLanes;
 use crate::shade::{V3, brdf, dot, scale, to32, to64};
 use rayon::prelude::*;
-use wide::{f32x4, f64x8};
+use wide::{f32x4, f32x8};
 
 /// Per entry: E (3), J_r (3), J_n (3 × 3, row c), J_wo (3 × 3, row c).
 const JACOBIAN: usize = 24;
@@ -55,7 +56,7 @@ impl LinearisedShading {
 }
 
 /// One entry: (L_direct, L_indirect, its sums); writes its samples' env weights.
-fn shade_one_linearised(
+fn shade_one_linearised<L: FloatLanes>(
     inp: &PbrInputs,
     env: &LaneEnv,
     i: usize,
@@ -65,16 +66,16 @@ fn shade_one_linearised(
     let (a, r, n, wo) = (to64(inp.albedo[i]), inp.roughness[i] as f64, to64(inp.normal[i]), to64(inp.view[i]));
     let footprints = inp.footprints_for(env.env);
     let kd = if inp.lambert { brdf::diffuse_weight(dot(n, wo), r).0 } else { 0.0 };
-    let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(splat);
-    let lobe = inp.specular.then(|| Lobe::new(r, n, wo));
-    let zero = f64x8::ZERO;
+    let lambert = scale(a, kd * std::f64::consts::FRAC_1_PI).map(L::splat);
+    let lobe = inp.specular.then(|| Lobe::<L>::new(r, n, wo));
+    let zero = L::ZERO;
     let (mut direct, mut indirect) = ([zero; 3], [zero; 3]);
     let (mut e, mut jr, mut jn, mut jwo) = ([zero; 3], [zero; 3], [[zero; 3]; 3], [[zero; 3]; 3]);
     for k0 in (i * s..(i + 1) * s).step_by(LANES) {
         let len = (i * s + s - k0).min(LANES);
-        let b = load_block(inp, env, footprints, n, k0, len, None);
+        let b = load_block::<L>(inp, env, footprints, n, k0, len, None);
         // The lobe's derivatives for a unit upstream gradient (it is linear in it).
-        let lg = lobe.as_ref().map(|l| l.eval_with_backward(b.dirs, splat(1.0)));
+        let lg = lobe.as_ref().map(|l| l.eval_with_backward(b.dirs, L::splat(1.0)));
         let spec = lg.map_or(zero, |g| g.spec);
         for ch in 0..3 {
             let fw = b.wc * (lambert[ch] + spec);
@@ -95,28 +96,46 @@ fn shade_one_linearised(
                 }
             }
         }
-        let wv = (b.wc * b.vis).to_array();
-        let wvs = (b.wc * b.vis * spec).to_array();
+        let wv = (b.wc * b.vis).to_f32s();
+        let wvs = (b.wc * b.vis * spec).to_f32s();
         let base = k0 - i * s;
         for j in 0..len {
-            env_weights[base + j] = [wv[j] as f32, wvs[j] as f32];
+            env_weights[base + j] = [wv[j], wvs[j]];
         }
     }
     let mut jac = [0.0; JACOBIAN];
     for ch in 0..3 {
-        jac[J_E + ch] = lane_sum(e[ch]);
-        jac[J_R + ch] = lane_sum(jr[ch]);
+        jac[J_E + ch] = e[ch].sum();
+        jac[J_R + ch] = jr[ch].sum();
         for c in 0..3 {
-            jac[J_N + 3 * c + ch] = lane_sum(jn[c][ch]);
-            jac[J_WO + 3 * c + ch] = lane_sum(jwo[c][ch]);
+            jac[J_N + 3 * c + ch] = jn[c][ch].sum();
+            jac[J_WO + 3 * c + ch] = jwo[c][ch].sum();
         }
     }
-    (direct.map(lane_sum), indirect.map(lane_sum), jac)
+    (direct.map(L::sum), indirect.map(L::sum), jac)
 }
 
-/// [`shade_subset`](super::shade_subset) (the same outputs to rounding), keeping in `lin` what
-/// [`shade_subset_linearised_backward`] needs.
+/// [`shade_subset`](super::shade_subset) (the same outputs to f32 rounding: the samples run in
+/// f32 lanes), keeping in `lin` what [`shade_subset_linearised_backward`] needs.
+///
+/// f32 lanes because this is the inverse iteration's largest shading pass and its inputs are
+/// f32: f64 lanes (the tests' instantiation) took 1.7–1.8 × as long on the AVX2 VM (50k surfels ×
+/// 64 samples: 82–92 ms against 45–57 ms, BENCHMARKS.md session 90). Sums over the samples run
+/// per lane in f32 (eight samples a lane at S = 64) and across lanes in f64. Near the mirror
+/// direction of smooth surfels the f32 lobe is coarser (see `f32_lanes_track_the_f64_lanes`).
 pub fn shade_subset_linearised(
+    inp: &PbrInputs,
+    env: &EnvMap,
+    ids: &[u32],
+    direct: &mut [[f32; 3]],
+    indirect: &mut [[f32; 3]],
+    lin: &mut LinearisedShading,
+) -> Result<()> {
+    shade_subset_linearised_in::<f32x8>(inp, env, ids, direct, indirect, lin)
+}
+
+/// [`shade_subset_linearised`] in lanes of `L`.
+fn shade_subset_linearised_in<L: FloatLanes>(
     inp: &PbrInputs,
     env: &EnvMap,
     ids: &[u32],
@@ -144,7 +163,7 @@ pub fn shade_subset_linearised(
         .zip(ids.par_iter())
         .with_min_len(64)
         .for_each(|((((d, ind), jac), weights), &i)| {
-            let (a, b, j) = shade_one_linearised(inp, env, i as usize, weights);
+            let (a, b, j) = shade_one_linearised::<L>(inp, env, i as usize, weights);
             *d = to32(a);
             *ind = to32(b);
             *jac = j;
@@ -227,6 +246,7 @@ mod tests {
     use crate::shade::testutil::{close, rng};
     use crate::shade::{add, frame};
     use rand::RngExt;
+    use wide::f64x8;
 
     /// A case of `n` surfels: grazing views on the first two (n·ω_o ≈ 2e-3 and below the
     /// clamp), roughness at both ends, optional importance-sampling weights.
@@ -266,7 +286,7 @@ mod tests {
                     let (mut d2, mut ind2) = (vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
                     shade_subset(&inp, &env, &ids, &mut d, &mut ind).unwrap();
                     let mut lin = LinearisedShading::default();
-                    shade_subset_linearised(&inp, &env, &ids, &mut d2, &mut ind2, &mut lin).unwrap();
+                    shade_subset_linearised_in::<f64x8>(&inp, &env, &ids, &mut d2, &mut ind2, &mut lin).unwrap();
                     for k in 0..m {
                         for ch in 0..3 {
                             assert!(close(d2[k][ch] as f64, d[k][ch] as f64, 1e-6, 1e-9), "direct {k}");
@@ -303,6 +323,86 @@ mod tests {
         assert_eq!(checked, 18);
     }
 
+    /// The f32 lanes (training) against the f64 lanes (checked above against the general path
+    /// and finite differences): colours, and the gradients of one backward fed by either
+    /// forward, relative to each quantity's largest magnitude over the entries. Everything
+    /// finite.
+    ///
+    /// The bound depends on the lobe's width: tt = 1 − NoH²(1 − α²) carries an absolute
+    /// rounding of ≈ 1e-7 in f32 against tt ≈ α² near the mirror direction, so smooth surfels
+    /// (three of twelve at each roughness, with samples 3e-3 and 3e-2 rad off their mirror
+    /// direction) are checked at bounds that grow as α² shrinks; at r = 1e-3, 1 − α² rounds to 1
+    /// in f32 and only finiteness is asked. (The f64 lanes are no exact truth there either:
+    /// normals stored in f32 are unit to ≈ 1e-7, the same absolute error in tt.)
+    #[test]
+    fn f32_lanes_track_the_f64_lanes() {
+        let env = random_env(16, 32, 8);
+        // (roughness of surfels 2–4, bound on colours, on the gradients)
+        let settings =
+            [(None, 1e-5, 1e-4), (Some(0.3f32), 1e-4, 3e-4), (Some(0.1), 1e-2, 2e-2), (Some(0.05), 0.1, 0.5)];
+        let finite_only = [(Some(0.02f32), f64::INFINITY, f64::INFINITY), (Some(1e-3), f64::INFINITY, f64::INFINITY)];
+        let mut checked = 0;
+        for (specular, lambert, weighted) in [(true, true, false), (true, false, true)] {
+            for s in [13, 64] {
+                for &(smooth, colour_bound, grad_bound) in settings.iter().chain(&finite_only) {
+                    let mut case = case_with(12, s, 70 + s as u64, specular, lambert, weighted);
+                    for i in smooth.map_or(0..0, |_| 2..5) {
+                        case.rough[i] = smooth.unwrap();
+                        // Two samples just off the mirror direction of the view.
+                        let (nn, wo) = (to64(case.normal[i]), to64(case.view[i]));
+                        let m = crate::shade::sub(scale(nn, 2.0 * dot(nn, wo)), wo);
+                        let (t, _) = frame(to32(m));
+                        for (q, off) in [(0, 3e-3), (1, 3e-2)] {
+                            case.dirs[i * s + q] = to32(crate::shade::normalize(add(m, scale(to64(t), off))));
+                        }
+                    }
+                    let inp = case.inputs();
+                    let ids: Vec<u32> = (0..12).collect();
+                    let mut rg = rng(s as u64 + 1);
+                    let v: Vec<[f32; 3]> = ids
+                        .iter()
+                        .map(|_| [rg.random_range(-1.0..1.0), rg.random_range(-1.0..1.0), rg.random()])
+                        .collect();
+                    let run = |f32_lanes: bool| {
+                        let (mut d, mut ind) = (vec![[0.0; 3]; 12], vec![[0.0; 3]; 12]);
+                        let mut lin = LinearisedShading::default();
+                        if f32_lanes {
+                            shade_subset_linearised(&inp, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+                        } else {
+                            shade_subset_linearised_in::<f64x8>(&inp, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+                        }
+                        let mut g = SubsetGrads::default();
+                        shade_subset_linearised_backward(&inp, &env, &ids, &lin, &v, &mut g).unwrap();
+                        (d, ind, g)
+                    };
+                    let (d32, i32_, g32) = run(true);
+                    let (d64, i64_, g64) = run(false);
+                    let flat = |x: &[[f32; 3]]| x.iter().flatten().map(|&y| y as f64).collect::<Vec<f64>>();
+                    let rel = |a: &[f64], b: &[f64]| {
+                        assert!(a.iter().all(|x| x.is_finite()), "not finite at {smooth:?}");
+                        let scale = b.iter().fold(0f64, |m, x| m.max(x.abs())).max(f64::MIN_POSITIVE);
+                        a.iter().zip(b).fold(0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+                    };
+                    let rough: [Vec<f64>; 2] = [&g32, &g64].map(|g| g.v_roughness.iter().map(|&x| x as f64).collect());
+                    let colour = rel(&flat(&d32), &flat(&d64)).max(rel(&flat(&i32_), &flat(&i64_)));
+                    let grads = [
+                        rel(&flat(&g32.v_albedo), &flat(&g64.v_albedo)),
+                        rel(&rough[0], &rough[1]),
+                        rel(&flat(&g32.v_normal), &flat(&g64.v_normal)),
+                        rel(&flat(&g32.v_view), &flat(&g64.v_view)),
+                        rel(&flat(&g32.v_env), &flat(&g64.v_env)),
+                    ];
+                    assert!(colour <= colour_bound, "colours at {smooth:?}, S {s}: {colour:e}");
+                    for (what, err) in ["albedo", "roughness", "normal", "view", "env"].iter().zip(grads) {
+                        assert!(err <= grad_bound, "{what} gradient at {smooth:?}, S {s}: {err:e}");
+                    }
+                    checked += 1;
+                }
+            }
+        }
+        assert_eq!(checked, 24);
+    }
+
     /// The linearised backward against central differences of the linearised forward (f64
     /// outputs), per parameter: albedo, roughness, normal, view and env texels.
     #[test]
@@ -320,12 +420,12 @@ mod tests {
                 (0..n).map(|_| [rg.random_range(-1.0..1.0), rg.random(), rg.random_range(-1.0..1.0)]).collect();
             let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
             let mut lin = LinearisedShading::default();
-            shade_subset_linearised(&case.inputs(), &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+            shade_subset_linearised_in::<f64x8>(&case.inputs(), &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
             let mut g = SubsetGrads::default();
             shade_subset_linearised_backward(&case.inputs(), &env, &ids, &lin, &v, &mut g).unwrap();
             let obj = |c: &Case, e: &EnvMap, i: usize| {
                 let mut weights = vec![[0.0f32; 2]; s];
-                let (dd, ii, _) = shade_one_linearised(&c.inputs(), &LaneEnv::new(e), i, &mut weights);
+                let (dd, ii, _) = shade_one_linearised::<f64x8>(&c.inputs(), &LaneEnv::new(e), i, &mut weights);
                 // The general forward's value, as a check of the linearised one's.
                 let (d0, i0) = shade_one(&c.inputs(), &LaneEnv::new(e), i);
                 for ch in 0..3 {

@@ -357,20 +357,22 @@ fn surfel_bounds(s: &Surfels, i: usize, back_occluders: Option<&[bool]>) -> (Aab
     let o = sigmoid(s.opacity_logits[i]);
     let (su, sv) = (sc[0].max(1e-20), sc[1].max(1e-20));
     let m = s.means[i];
+    // ρ² at which α falls to ALPHA_MIN (one log for the hit data and the bounds).
+    let rho_sq = 2.0 * (o / ALPHA_MIN).ln();
     let prim = Prim {
         mean: m,
         tu_s: r[0].map(|x| x / su),
         tv_s: r[1].map(|x| x / sv),
         normal: r[2],
         opacity: o,
-        rho_max: if o >= ALPHA_MIN { 2.0 * (o / ALPHA_MIN).ln() } else { -1.0 },
+        rho_max: if o >= ALPHA_MIN { rho_sq } else { -1.0 },
         index: i as u32,
         back_occluder: back_occluders.is_some_and(|b| b[i]),
     };
     if !(o >= ALPHA_MIN) {
         return (EMPTY, prim);
     }
-    let rr = (2.0 * (o / ALPHA_MIN).ln()).max(0.0).sqrt();
+    let rr = rho_sq.max(0.0).sqrt();
     let (ru, rv) = (rr * su, rr * sv);
     let mut b = EMPTY;
     for a in 0..3 {

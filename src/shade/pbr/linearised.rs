@@ -464,6 +464,32 @@ mod tests {
         println!("linearised forward: {:.1} ms", t0.elapsed().as_secs_f64() / reps as f64 * 1e3);
     }
 
+    /// The linearised backward alone, repeated (as [`forward_for_profiling`]; unit upstream
+    /// gradients on every entry).
+    #[test]
+    #[ignore]
+    fn backward_for_profiling() {
+        let (env, case, packed) = benchmark_case();
+        let n = case.albedo.len();
+        let inputs = case.inputs_cached(&packed, &env, true);
+        let ids: Vec<u32> = (0..n as u32).collect();
+        let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
+        let mut lin = LinearisedShading::default();
+        shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+        let v = vec![[0.5f32, -0.25, 1.0]; n];
+        let mut g = SubsetGrads::default();
+        let reps = 40;
+        let t0 = std::time::Instant::now();
+        for _ in 0..reps {
+            shade_subset_linearised_backward(&inputs, &env, &ids, &lin, &v, &mut g).unwrap();
+        }
+        let sum: f64 = g.v_env.iter().flatten().map(|&x| x as f64).sum();
+        println!(
+            "linearised backward: {:.1} ms (env gradient sum {sum:.6e})",
+            t0.elapsed().as_secs_f64() / reps as f64 * 1e3
+        );
+    }
+
     #[test]
     fn rejects_a_backward_of_another_shading() {
         let env = random_env(8, 16, 1);

@@ -45,101 +45,61 @@ pub trait FloatLanes:
     }
 }
 
-impl FloatLanes for f64x8 {
-    const ZERO: Self = f64x8::ZERO;
-    #[inline]
-    fn splat(x: f64) -> Self {
-        f64x8::splat(x)
-    }
-    #[inline]
-    fn from_f32s(x: [f32; LANES]) -> Self {
-        f64x8::from(x.map(|v| v as f64))
-    }
-    #[inline]
-    fn from_f64s(x: [f64; LANES]) -> Self {
-        f64x8::from(x)
-    }
-    #[inline]
-    fn to_f64s(self) -> [f64; LANES] {
-        self.to_array()
-    }
-    #[inline]
-    fn to_f32s(self) -> [f32; LANES] {
-        self.to_array().map(|v| v as f32)
-    }
-    #[inline]
-    fn sqrt(self) -> Self {
-        f64x8::sqrt(self)
-    }
-    #[inline]
-    fn gt(self, rhs: Self) -> Self {
-        self.simd_gt(rhs)
-    }
-    #[inline]
-    fn lt(self, rhs: Self) -> Self {
-        self.simd_lt(rhs)
-    }
-    #[inline]
-    fn select(self, if_true: Self, if_false: Self) -> Self {
-        f64x8::select(self, if_true, if_false)
-    }
-    #[inline]
-    fn bitmask(self) -> u32 {
-        self.to_bitmask()
-    }
-    #[inline]
-    fn max(self, rhs: Self) -> Self {
-        f64x8::max(self, rhs)
-    }
+/// The impl for `$lanes` of `$elem`: the same code for both, conversions by `as`.
+macro_rules! float_lanes {
+    ($lanes:ident, $elem:ty) => {
+        impl FloatLanes for $lanes {
+            const ZERO: Self = $lanes::ZERO;
+            #[inline]
+            fn splat(x: f64) -> Self {
+                $lanes::splat(x as $elem)
+            }
+            #[inline]
+            fn from_f32s(x: [f32; LANES]) -> Self {
+                $lanes::from(x.map(|v| v as $elem))
+            }
+            #[inline]
+            fn from_f64s(x: [f64; LANES]) -> Self {
+                $lanes::from(x.map(|v| v as $elem))
+            }
+            #[inline]
+            fn to_f64s(self) -> [f64; LANES] {
+                self.to_array().map(|v| v as f64)
+            }
+            #[inline]
+            fn to_f32s(self) -> [f32; LANES] {
+                self.to_array().map(|v| v as f32)
+            }
+            #[inline]
+            fn sqrt(self) -> Self {
+                $lanes::sqrt(self)
+            }
+            #[inline]
+            fn gt(self, rhs: Self) -> Self {
+                self.simd_gt(rhs)
+            }
+            #[inline]
+            fn lt(self, rhs: Self) -> Self {
+                self.simd_lt(rhs)
+            }
+            #[inline]
+            fn select(self, if_true: Self, if_false: Self) -> Self {
+                $lanes::select(self, if_true, if_false)
+            }
+            #[inline]
+            fn bitmask(self) -> u32 {
+                self.to_bitmask()
+            }
+            #[inline]
+            fn max(self, rhs: Self) -> Self {
+                $lanes::max(self, rhs)
+            }
+        }
+    };
 }
 
-impl FloatLanes for f32x8 {
-    const ZERO: Self = f32x8::ZERO;
-    #[inline]
-    fn splat(x: f64) -> Self {
-        f32x8::splat(x as f32)
-    }
-    #[inline]
-    fn from_f32s(x: [f32; LANES]) -> Self {
-        f32x8::from(x)
-    }
-    #[inline]
-    fn from_f64s(x: [f64; LANES]) -> Self {
-        f32x8::from(x.map(|v| v as f32))
-    }
-    #[inline]
-    fn to_f64s(self) -> [f64; LANES] {
-        self.to_array().map(|v| v as f64)
-    }
-    #[inline]
-    fn to_f32s(self) -> [f32; LANES] {
-        self.to_array()
-    }
-    #[inline]
-    fn sqrt(self) -> Self {
-        f32x8::sqrt(self)
-    }
-    #[inline]
-    fn gt(self, rhs: Self) -> Self {
-        self.simd_gt(rhs)
-    }
-    #[inline]
-    fn lt(self, rhs: Self) -> Self {
-        self.simd_lt(rhs)
-    }
-    #[inline]
-    fn select(self, if_true: Self, if_false: Self) -> Self {
-        f32x8::select(self, if_true, if_false)
-    }
-    #[inline]
-    fn bitmask(self) -> u32 {
-        self.to_bitmask()
-    }
-    #[inline]
-    fn max(self, rhs: Self) -> Self {
-        f32x8::max(self, rhs)
-    }
-}
+float_lanes!(f64x8, f64);
+float_lanes!(f32x8, f32);
 
 #[cfg(test)]
 mod tests {

@@ -450,44 +450,45 @@ mod tests {
     #[test]
     #[ignore]
     fn forward_for_profiling() {
-        let (env, case, packed) = benchmark_case();
-        let n = case.albedo.len();
-        let inputs = case.inputs_cached(&packed, &env, true);
-        let ids: Vec<u32> = (0..n as u32).collect();
-        let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
-        let mut lin = LinearisedShading::default();
-        let reps = 40;
-        let t0 = std::time::Instant::now();
-        for _ in 0..reps {
-            shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
-        }
-        println!("linearised forward: {:.1} ms", t0.elapsed().as_secs_f64() / reps as f64 * 1e3);
+        profile(false);
     }
 
-    /// The linearised backward alone, repeated (as [`forward_for_profiling`]; unit upstream
-    /// gradients on every entry).
+    /// The linearised backward alone, repeated, the same way (fixed upstream gradients on
+    /// every entry).
     #[test]
     #[ignore]
     fn backward_for_profiling() {
+        profile(true);
+    }
+
+    fn profile(backward: bool) {
         let (env, case, packed) = benchmark_case();
         let n = case.albedo.len();
         let inputs = case.inputs_cached(&packed, &env, true);
         let ids: Vec<u32> = (0..n as u32).collect();
         let (mut d, mut ind) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
         let mut lin = LinearisedShading::default();
-        shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
         let v = vec![[0.5f32, -0.25, 1.0]; n];
         let mut g = SubsetGrads::default();
+        if backward {
+            shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+        }
         let reps = 40;
         let t0 = std::time::Instant::now();
         for _ in 0..reps {
-            shade_subset_linearised_backward(&inputs, &env, &ids, &lin, &v, &mut g).unwrap();
+            if backward {
+                shade_subset_linearised_backward(&inputs, &env, &ids, &lin, &v, &mut g).unwrap();
+            } else {
+                shade_subset_linearised(&inputs, &env, &ids, &mut d, &mut ind, &mut lin).unwrap();
+            }
         }
-        let sum: f64 = g.v_env.iter().flatten().map(|&x| x as f64).sum();
-        println!(
-            "linearised backward: {:.1} ms (env gradient sum {sum:.6e})",
-            t0.elapsed().as_secs_f64() / reps as f64 * 1e3
-        );
+        let ms = t0.elapsed().as_secs_f64() / reps as f64 * 1e3;
+        if backward {
+            let sum: f64 = g.v_env.iter().flatten().map(|&x| x as f64).sum();
+            println!("linearised backward: {ms:.1} ms (env gradient sum {sum:.6e})");
+        } else {
+            println!("linearised forward: {ms:.1} ms");
+        }
     }
 
     #[test]

@@ -1,7 +1,8 @@
 //! The specular lobe of [`super::brdf`] for eight samples of one surfel at once (eight f64 or
-//! f32 lanes, [`FloatLanes`]), forward and backward side by side: most of the per-sample rendering equation's arithmetic is here, and
-//! a surfel's samples share n, ω_o and r ([`Lobe`] holds what they share, Smith's ω_o factor
-//! included; `pbr.rs` calls it on blocks of eight samples).
+//! f32 lanes, [`FloatLanes`]), forward and backward side by side: most of the per-sample
+//! rendering equation's arithmetic is here, and a surfel's samples share n, ω_o and r ([`Lobe`]
+//! holds what they share, Smith's ω_o factor included; `pbr.rs` calls it on blocks of eight
+//! samples).
 //!
 //! The formulas are `brdf.rs`'s, rearranged for lanes: the per-surfel parts are hoisted, and the
 //! per-sample divisions share reciprocals: the backward takes two square roots and four
@@ -152,7 +153,8 @@ fn terms<L: FloatLanes>(sf: &Lobe<L>, wi: [L; 3]) -> Terms<L> {
 }
 
 /// tt = 1 − NoH²(1 − α²) of D = α²/(π·tt²), never below its exact minimum α² (at NoH = 1):
-/// in f32, 1 − α² rounds to 1 for α² < 6e-8 and a mirror sample would divide by zero.
+/// in f32, 1 − α² rounds to 1 for α² < 6e-8 and a mirror sample would divide by zero. In exact
+/// arithmetic the bound is never active, so the backward keeps tt's plain derivative.
 #[inline]
 fn tt_of<L: FloatLanes>(noh: L, sf: &Lobe<L>) -> L {
     (splat::<L>(1.0) - noh * noh * sf.one_minus_a2).max(sf.a2)

@@ -188,12 +188,6 @@ impl<'a> LaneEnv<'a> {
     }
 }
 
-/// Lanes summed in lane order (a fixed order: the result does not depend on the SIMD width).
-#[inline]
-fn lane_sum(x: f64x8) -> f64 {
-    x.to_array().iter().sum()
-}
-
 /// Samples k0..k0 + len of one surfel in lanes. Lanes that do not contribute (past `len`, or
 /// under the horizon: n·ω ≤ 0) have zero weight and radiance and the direction n (harmless in
 /// the lobe), so every sum over lanes is the sum over the live samples.
@@ -367,7 +361,7 @@ pub fn shade_one(inp: &PbrInputs, env: &LaneEnv, i: usize) -> (V3, V3) {
             indirect[ch] += fw * b.li[ch];
         }
     }
-    (direct.map(lane_sum), indirect.map(lane_sum))
+    (direct.map(FloatLanes::sum), indirect.map(FloatLanes::sum))
 }
 
 /// Forward: writes L_direct and L_indirect per surfel (L_pbr = their sum).
@@ -463,8 +457,8 @@ fn backward_one(
             }
         }
     }
-    let v_lambert = v_lambert.map(lane_sum);
-    let (mut vr, mut vn, mut vwo) = (lane_sum(vr), vn.map(lane_sum), vwo.map(lane_sum));
+    let v_lambert = v_lambert.map(FloatLanes::sum);
+    let (mut vr, mut vn, mut vwo) = (vr.sum(), vn.map(FloatLanes::sum), vwo.map(FloatLanes::sum));
     // lambert = a·kd(NoV, r)/π.
     let mut va = scale(v_lambert, kd * std::f64::consts::FRAC_1_PI);
     let v_kd = dot(v_lambert, a) * std::f64::consts::FRAC_1_PI;

@@ -119,7 +119,7 @@ fn shade_one_linearised<L: FloatLanes>(
 /// f32 lanes), keeping in `lin` what [`shade_subset_linearised_backward`] needs.
 ///
 /// f32 lanes because this is the inverse iteration's largest shading pass and its inputs are
-/// f32: f64 lanes (the tests' instantiation) took 1.7–1.8 × as long on the AVX2 VM (50k surfels ×
+/// f32: f64 lanes (the tests' instantiation) took 1.6–1.8 × as long on the AVX2 VM (50k surfels ×
 /// 64 samples: 82–92 ms against 45–57 ms, BENCHMARKS.md session 90). Sums over the samples run
 /// per lane in f32 (eight samples a lane at S = 64) and across lanes in f64. Near the mirror
 /// direction of smooth surfels the f32 lobe is coarser (see `f32_lanes_track_the_f64_lanes`).

@@ -47,6 +47,10 @@ pub struct TraceBenchArgs {
     /// `--trace-grazing`); 0 = strict one-sided culling.
     #[arg(long, default_value_t = 0.0)]
     pub grazing: f32,
+    /// Composite the hits' colours decoded to linear, as the inverse stage's tracer does
+    /// (`TraceSettings::linear_radiance`: an sRGB decode per hit and channel).
+    #[arg(long)]
+    pub linear_radiance: bool,
 }
 
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq)]
@@ -191,7 +195,12 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
     );
     anyhow::ensure!((0.0..=45.0).contains(&args.grazing), "bench trace: --grazing must be in [0, 45] degrees");
     let grazing_sin = args.grazing.to_radians().sin();
-    let settings = TraceSettings { chunk: args.chunk, grazing_sin, ..TraceSettings::default() };
+    let settings = TraceSettings {
+        chunk: args.chunk,
+        grazing_sin,
+        linear_radiance: args.linear_radiance,
+        ..TraceSettings::default()
+    };
     let scenes: Vec<(&str, Surfels)> = match (&args.ply, args.scene) {
         (Some(path), _) => vec![("ply", crate::io::ply::read_ply(path)?)],
         (None, SceneChoice::Surface) => vec![("surface", scene("surface", 7))],
@@ -201,9 +210,10 @@ pub fn run(args: &TraceBenchArgs) -> anyhow::Result<()> {
     anyhow::ensure!(scenes.iter().all(|(_, s)| !s.is_empty()), "bench trace: the scene has no surfels");
     let reps = args.repeats;
     println!(
-        "radiogs bench trace: {} threads, {} surfels, 2048 × 64 hemisphere rays from surfel centres",
+        "radiogs bench trace: {} threads, {} surfels, 2048 × 64 hemisphere rays from surfel centres{}",
         rayon::current_num_threads(),
-        scenes[0].1.len()
+        scenes[0].1.len(),
+        if args.linear_radiance { ", colours decoded to linear" } else { "" }
     );
     for (kind, s) in scenes {
         let rays = hemisphere_rays(&s, 8, args.skip_margin);

@@ -80,8 +80,21 @@ pub fn decode(c: f32) -> f32 {
 /// d decode / dc.
 #[inline]
 pub fn decode_derivative(c: f32) -> f32 {
+    decode_with_derivative(c).1
+}
+
+/// (decode(c), d decode / dc) with one power: above the linear segment
+/// d/dc t^2.4 = 2.4/1.055 · t^2.4 / t for t = (c + 0.055)/1.055.
+#[inline]
+pub fn decode_with_derivative(c: f32) -> (f32, f32) {
     let c = c.max(0.0);
-    if c <= 0.040_45 { 1.0 / 12.92 } else { 2.4 / 1.055 * ((c + 0.055) / 1.055).powf(1.4) }
+    if c <= 0.040_45 {
+        (c / 12.92, 1.0 / 12.92)
+    } else {
+        let t = (c + 0.055) / 1.055;
+        let v = crate::io::image::pow_2_4(t);
+        (v, 2.4 / 1.055 * v / t)
+    }
 }
 
 /// A deterministic rotation angle in [0, 2π) for surfel `i` at refresh `seed`.
@@ -546,6 +559,16 @@ mod tests {
                 "{c}: {fd} vs {}",
                 decode_derivative(c)
             );
+        }
+        // Value and derivative from one power: the value is decode's, the derivative the f64
+        // curve's 2.4/1.055 · t^1.4 to a few f32 roundings, on both segments and at the kink.
+        for k in 0..=4000 {
+            let c = -0.1 + 2.0 * k as f32 / 4000.0;
+            let (v, d) = decode_with_derivative(c);
+            assert_eq!(v.to_bits(), decode(c).to_bits(), "c {c}");
+            let cc = c.max(0.0) as f64;
+            let exact = if cc <= 0.040_45 { 1.0 / 12.92 } else { 2.4 / 1.055 * ((cc + 0.055) / 1.055).powf(1.4) };
+            assert!((d as f64 - exact).abs() <= 1e-6 * exact, "c {c}: {d} vs {exact}");
         }
     }
 

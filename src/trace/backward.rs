@@ -23,7 +23,7 @@
 //! scheduling (no atomics, no per-hit locking).
 
 use crate::sh::{self, SH_COEFFS};
-use crate::shade::incident::{decode, decode_derivative};
+use crate::shade::incident::decode_with_derivative;
 use crate::surfels::{SurfelGrads, Surfels, rotation_from_quat, rotation_from_quat_backward, sigmoid};
 use crate::trace::bvh::{PreparedRay, Tracer};
 use crate::trace::forward::{HitRecord, RecordedHit, coherent_order, march, prefetch, prefetch_all, sh_colour, unit};
@@ -478,11 +478,10 @@ impl Ctx<'_> {
                 let mut v_c = [0.0f32; 3];
                 for c in 0..3 {
                     let clamped = craw[c].max(0.0);
-                    let col = if linear { decode(clamped) } else { clamped };
+                    let (col, dcol) = if linear { decode_with_derivative(clamped) } else { (clamped, 1.0) };
                     v_alpha += g.v_radiance[c] * (trans * col - s_rad[c] * inv);
                     s_rad[c] += w * col;
                     if craw[c] > 0.0 {
-                        let dcol = if linear { decode_derivative(clamped) } else { 1.0 };
                         v_c[c] = g.v_radiance[c] * w * dcol;
                     }
                 }

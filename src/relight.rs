@@ -294,6 +294,7 @@ pub fn finetune(
             &tracer,
             env,
             eye,
+            None,
             &mut rng,
             &rc,
             &mut scratch,

@@ -148,7 +148,8 @@ pub struct RcLosses {
 }
 
 /// One radiometric-consistency evaluation with its backward. `eye` is the current camera
-/// centre (None: a second random direction replaces ω_cam). Adds gradients into `v_surfels`
+/// centre (None: a second random direction replaces ω_cam). `batch` names the surfels (its
+/// length is B; `--rc-order sweep`); None draws `cfg.surfels` uniformly at random. Adds gradients into `v_surfels`
 /// (SH of the sampled surfels and everything the tracer reaches), `mats` (albedo, roughness,
 /// normal, means through ω_cam) and `v_env` (linear texels, unless detached).
 #[allow(clippy::too_many_arguments)]
@@ -158,6 +159,7 @@ pub fn radiometric_consistency(
     tracer: &Tracer,
     env: &EnvMap,
     eye: Option<[f32; 3]>,
+    batch: Option<&[u32]>,
     rng: &mut rand_pcg::Pcg64,
     cfg: &RcSettings,
     scratch: &mut RcScratch,
@@ -166,13 +168,19 @@ pub fn radiometric_consistency(
     v_env: &mut [[f32; 3]],
 ) -> RcLosses {
     let n = surfels.len();
-    let (b, r) = (cfg.surfels.min(n), cfg.rays);
+    let (b, r) = (batch.map_or(cfg.surfels, |ids| ids.len()).min(n), cfg.rays);
     if b == 0 || r == 0 {
         return RcLosses::default();
     }
     let sc = scratch;
     sc.ids.clear();
-    sc.ids.extend((0..b).map(|_| rng.random_range(0..n) as u32));
+    match batch {
+        Some(ids) => sc.ids.extend(ids[..b].iter().map(|&i| {
+            assert!((i as usize) < n, "consistency: batch names surfel {i} of {n}");
+            i
+        })),
+        None => sc.ids.extend((0..b).map(|_| rng.random_range(0..n) as u32)),
+    }
     let seed: u64 = rng.random();
     sc.dirs.resize(b * r, [0.0; 3]);
     sc.rays.resize(b * r, Ray::default());
@@ -426,6 +434,7 @@ mod tests {
             &tracer,
             env,
             Some([0.3, -0.2, 2.0]),
+            None,
             &mut rng,
             cfg,
             &mut sc,
@@ -578,6 +587,56 @@ mod tests {
         }
         let gmax = (12..s.len()).map(|i| v.opacity_logits[i].abs()).fold(0.0f32, f32::max);
         assert!(no > 0, "no occluder was hit (largest opacity gradient {gmax})");
+    }
+
+    /// A given batch (`--rc-order sweep`) replaces the random draw, its length is B, and only
+    /// its surfels' left sides get SH gradients from their own residuals.
+    #[test]
+    fn a_given_batch_names_the_surfels() {
+        let s = scene();
+        let env = EnvMap::constant(16, 8, [1.0, 0.9, 0.8]);
+        let cfg = RcSettings {
+            surfels: 8,
+            rays: 8,
+            start: RayStart::offset_only(1e-3),
+            weight: 1.0,
+            detach: Detach::default(),
+            detach_lhs: false,
+            // No gradient through the rays: the SH gradients are the left sides' alone.
+            detach_rhs: true,
+            linear_l2: false,
+        };
+        let mut view = MaterialView::default();
+        view.update(&s);
+        let tracer = Tracer::build(&s, &TraceSettings { min_transmittance: 0.0, ..TraceSettings::default() });
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let mut v = s.zeros_like();
+        v.sh_degree = s.sh_degree;
+        let mut mats = MaterialGrads::default();
+        mats.reset(s.len());
+        let mut v_env = vec![[0.0f32; 3]; env.texels.len()];
+        let mut sc = RcScratch::default();
+        let batch = [2u32, 0, 2];
+        let l = radiometric_consistency(
+            &s,
+            &view,
+            &tracer,
+            &env,
+            Some([0.3, -0.2, 2.0]),
+            Some(&batch),
+            &mut rng,
+            &cfg,
+            &mut sc,
+            &mut v,
+            &mut mats,
+            &mut v_env,
+        );
+        assert!(l.total.is_finite() && l.total > 0.0, "{l:?}");
+        assert_eq!(sc.ids, batch);
+        for i in 0..s.len() {
+            let touched = v.sh[i].iter().any(|c| c.iter().any(|&x| x != 0.0));
+            assert_eq!(touched, i == 0 || i == 2, "surfel {i}");
+        }
     }
 
     #[test]

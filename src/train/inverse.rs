@@ -47,7 +47,7 @@ use crate::shade::traced_specular::{SpecularSamples, TracedSpecular};
 use crate::surfels::{Surfels, albedo_to_logit, logit};
 use crate::trace::{TraceSettings, Tracer};
 use crate::train::checkpoint::Checkpoint;
-use crate::train::config::{Background, Specular, TraceBackFaces, TrainConfig};
+use crate::train::config::{Background, RcOrder, Specular, TraceBackFaces, TrainConfig};
 use crate::train::interrupt;
 use anyhow::Context;
 use rand::RngExt;
@@ -623,6 +623,9 @@ pub struct InverseTimes {
 #[derive(Default)]
 struct Scratch {
     gt: Vec<[f32; 3]>,
+    /// `--rc-order sweep`: the pass's order and this iteration's consistency surfels.
+    rc_sweep: super::rc_sweep::RcSweep,
+    rc_batch: Vec<u32>,
     pbr_image: PbrImageLoss,
     grads: RenderGrads,
     ssim_sh: Ssim,
@@ -911,12 +914,20 @@ fn iterate(
     // Radiometric consistency.
     if cfg.lambda_rc > 0.0 {
         let rc = rc_settings(cfg, state.extent);
+        let batch = match cfg.rc_order {
+            RcOrder::Random => None,
+            RcOrder::Sweep => {
+                sc.rc_sweep.batch(cfg.seed, state.iteration, s.len(), cfg.rc_surfels, &mut sc.rc_batch);
+                Some(&sc.rc_batch[..])
+            }
+        };
         l.rc = radiometric_consistency(
             s,
             &sc.mats,
             tracer,
             env,
             Some(eye),
+            batch,
             rng,
             &rc,
             &mut sc.rc,
@@ -1109,6 +1120,11 @@ pub fn run_until(
     // (the published full refresh every 100 iterations bounds the age the same way); rows the
     // consistency step traced meanwhile are fresh already, so each check traces fewer rows.
     let check_every = (cfg.cache_every / 4).max(1);
+    // Under the sweep with R = S the consistency's rows refresh the cache (each row once per
+    // pass of N/B iterations); the checks then only re-trace rows older than `cache_every`,
+    // which a pass no longer than `cache_every` leaves none of.
+    let swept = cfg.lambda_rc > 0.0 && cfg.rc_rays == cfg.pbr_samples && cfg.rc_order == RcOrder::Sweep;
+    let limit = if swept { cfg.cache_every } else { cfg.cache_every.saturating_sub(check_every) };
     let mut stale: Vec<u32> = Vec::new();
     let bar = progress_bar("inverse", cfg.inverse_iters, state.iteration);
     if !show_progress {
@@ -1192,7 +1208,6 @@ pub fn run_until(
         times.tracer_refit += t_fit.elapsed().as_secs_f64();
         if it % check_every == 0 && it < cfg.inverse_iters {
             let t = Instant::now();
-            let limit = cfg.cache_every.saturating_sub(check_every);
             stale.clear();
             stale.extend((0..state.traced_at.len() as u32).filter(|&i| it - state.traced_at[i as usize] > limit));
             follow_light_peaks(cfg, &mut state);
@@ -1237,7 +1252,7 @@ pub fn run_until(
         serde_json::to_string_pretty(&serde_json::json!({
             "iterations": state.iteration, "seconds": seconds, "split_seconds": split,
             "surfels": state.surfels.len(), "pbr_samples": cfg.pbr_samples, "rc_surfels": cfg.rc_surfels,
-            "rc_rays": cfg.rc_rays, "lambda_rc": cfg.lambda_rc,
+            "rc_rays": cfg.rc_rays, "rc_order": cfg.rc_order, "lambda_rc": cfg.lambda_rc,
         }))?
         .as_bytes(),
     )?;

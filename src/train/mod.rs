@@ -16,6 +16,7 @@ pub mod material;
 pub mod nvs;
 pub mod pbr_image;
 pub mod pbr_init;
+pub mod rc_sweep;
 
 use crate::io::dataset::{Dataset, Split};
 use config::{Stage, TrainConfig};

@@ -416,11 +416,22 @@ mod tests {
     }
 
     fn loss_and_grads_ramped(s: &Surfels, env: &EnvMap, cfg: &RcSettings, linear: bool, opaque_below: f32) -> Grads {
-        let mut view = MaterialView::default();
-        view.update(s);
         let settings =
             TraceSettings { min_transmittance: 0.0, linear_radiance: linear, opaque_below, ..TraceSettings::default() };
-        let tracer = Tracer::build(s, &settings);
+        evaluate(s, env, cfg, &settings, None).0
+    }
+
+    /// One call from a fixed camera and seed; also returns the surfels it picked.
+    fn evaluate(
+        s: &Surfels,
+        env: &EnvMap,
+        cfg: &RcSettings,
+        settings: &TraceSettings,
+        batch: Option<&[u32]>,
+    ) -> (Grads, Vec<u32>) {
+        let mut view = MaterialView::default();
+        view.update(s);
+        let tracer = Tracer::build(s, settings);
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
         let mut v = s.zeros_like();
         v.sh_degree = s.sh_degree;
@@ -434,7 +445,7 @@ mod tests {
             &tracer,
             env,
             Some([0.3, -0.2, 2.0]),
-            None,
+            batch,
             &mut rng,
             cfg,
             &mut sc,
@@ -442,7 +453,21 @@ mod tests {
             &mut mats,
             &mut v_env,
         );
-        (l.total, v, mats, v_env)
+        ((l.total, v, mats, v_env), sc.ids)
+    }
+
+    /// 8 surfels × 8 rays, no switch set.
+    fn small_settings() -> RcSettings {
+        RcSettings {
+            surfels: 8,
+            rays: 8,
+            start: RayStart::offset_only(1e-3),
+            weight: 1.0,
+            detach: Detach::default(),
+            detach_lhs: false,
+            detach_rhs: false,
+            linear_l2: false,
+        }
     }
 
     #[test]
@@ -595,44 +620,13 @@ mod tests {
     fn a_given_batch_names_the_surfels() {
         let s = scene();
         let env = EnvMap::constant(16, 8, [1.0, 0.9, 0.8]);
-        let cfg = RcSettings {
-            surfels: 8,
-            rays: 8,
-            start: RayStart::offset_only(1e-3),
-            weight: 1.0,
-            detach: Detach::default(),
-            detach_lhs: false,
-            // No gradient through the rays: the SH gradients are the left sides' alone.
-            detach_rhs: true,
-            linear_l2: false,
-        };
-        let mut view = MaterialView::default();
-        view.update(&s);
-        let tracer = Tracer::build(&s, &TraceSettings { min_transmittance: 0.0, ..TraceSettings::default() });
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
-        let mut v = s.zeros_like();
-        v.sh_degree = s.sh_degree;
-        let mut mats = MaterialGrads::default();
-        mats.reset(s.len());
-        let mut v_env = vec![[0.0f32; 3]; env.texels.len()];
-        let mut sc = RcScratch::default();
+        // No gradient through the rays: the SH gradients are the left sides' alone.
+        let cfg = RcSettings { detach_rhs: true, ..small_settings() };
         let batch = [2u32, 0, 2];
-        let l = radiometric_consistency(
-            &s,
-            &view,
-            &tracer,
-            &env,
-            Some([0.3, -0.2, 2.0]),
-            Some(&batch),
-            &mut rng,
-            &cfg,
-            &mut sc,
-            &mut v,
-            &mut mats,
-            &mut v_env,
-        );
-        assert!(l.total.is_finite() && l.total > 0.0, "{l:?}");
-        assert_eq!(sc.ids, batch);
+        let settings = TraceSettings { min_transmittance: 0.0, ..TraceSettings::default() };
+        let ((total, v, _, _), ids) = evaluate(&s, &env, &cfg, &settings, Some(&batch));
+        assert!(total.is_finite() && total > 0.0, "{total}");
+        assert_eq!(ids, batch);
         for i in 0..s.len() {
             let touched = v.sh[i].iter().any(|c| c.iter().any(|&x| x != 0.0));
             assert_eq!(touched, i == 0 || i == 2, "surfel {i}");
@@ -643,16 +637,7 @@ mod tests {
     fn detach_switches_stop_their_gradients() {
         let s = scene();
         let env = EnvMap::constant(16, 8, [1.0, 0.9, 0.8]);
-        let base = RcSettings {
-            surfels: 8,
-            rays: 8,
-            start: RayStart::offset_only(1e-3),
-            weight: 1.0,
-            detach: Detach::default(),
-            detach_lhs: false,
-            detach_rhs: false,
-            linear_l2: false,
-        };
+        let base = small_settings();
         let (_, v, mats, v_env) = loss_and_grads(&s, &env, &base);
         assert!(mats.v_albedo.iter().any(|a| a[0] != 0.0) && v_env.iter().any(|t| t[0] != 0.0));
         let (_, _, m2, e2) = loss_and_grads(
